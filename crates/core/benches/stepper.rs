@@ -1,0 +1,77 @@
+//! ns per step of the tangent-map method: one orbit (latency-bound) and batches of orbits in
+//! SIMD lanes (throughput-bound). Throughput is reported per orbit-step.
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use salient_core::batch::integrate_batch;
+use salient_core::orbit::{integrate, OrbitConfig, Requests};
+use salient_core::section::on_section;
+use salient_core::{HenonHeiles, Scheme, TangentMap};
+use std::hint::black_box;
+
+const STEPS: u64 = 20_000;
+
+fn single(c: &mut Criterion) {
+    let ham = HenonHeiles;
+    let mut g = c.benchmark_group("single-orbit");
+    g.throughput(Throughput::Elements(STEPS));
+    for name in ["sbab2c", "saba2c", "srkn14a"] {
+        let tau = 0.05;
+        let map = TangentMap::new(&ham, &Scheme::by_name(name).unwrap(), tau);
+        let (q, p) = on_section(&ham, 0.125, &[0.558], &[0.0]).unwrap();
+        let cfg = OrbitConfig::new(tau, STEPS as f64 * tau);
+        g.bench_function(BenchmarkId::new("tm", name), |b| {
+            b.iter(|| {
+                integrate::<_, 2, 2>(&map, black_box(q), black_box(p), &cfg, &Requests::default())
+            })
+        });
+    }
+    g.finish();
+}
+
+fn regular_ics(n: usize) -> Vec<([f64; 2], [f64; 2])> {
+    // Points near R1: regular, so no lane stops early and every lane does STEPS steps.
+    (0..n)
+        .map(|i| on_section(&HenonHeiles, 0.125, &[0.55 + 0.0005 * i as f64], &[0.0]).unwrap())
+        .collect()
+}
+
+fn batched<const L: usize>(
+    c: &mut Criterion,
+    g: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>,
+) {
+    let _ = c;
+    let ham = HenonHeiles;
+    let map = TangentMap::new(&ham, &Scheme::by_name("sbab2c").unwrap(), 0.05);
+    let ics = regular_ics(32);
+    let cfg = OrbitConfig::new(0.05, STEPS as f64 * 0.05);
+    g.bench_function(BenchmarkId::new("sbab2c-lanes", L), |b| {
+        b.iter(|| {
+            let mut sum = 0.0;
+            integrate_batch::<_, 2, 2, L>(
+                &map,
+                black_box(&ics),
+                &cfg,
+                &Requests::default(),
+                |_, r| sum += r.sali,
+            );
+            sum
+        })
+    });
+}
+
+fn batch(c: &mut Criterion) {
+    let mut c2 = Criterion::default();
+    let mut g = c.benchmark_group("batch");
+    g.throughput(Throughput::Elements(STEPS * 32));
+    batched::<1>(&mut c2, &mut g);
+    batched::<4>(&mut c2, &mut g);
+    batched::<8>(&mut c2, &mut g);
+    g.finish();
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(20).measurement_time(std::time::Duration::from_secs(3));
+    targets = single, batch
+}
+criterion_main!(benches);

@@ -1,0 +1,184 @@
+//! Chaos indicators from deviation vectors: SALI, GALI_k and the maximal Lyapunov exponent.
+//!
+//! Deviation vectors are kept finite by rescaling with exact powers of two (see
+//! [`pow2_rescale`]): every floating-point operation commutes exactly with such a scaling, so
+//! the normalised vectors — hence SALI and GALI — are bit-identical to those of unit
+//! renormalisation at every τ, with fewer roundings, and ln‖w‖ is carried as an integer count of
+//! binary orders of magnitude plus the logarithm of the current norm.
+
+use nalgebra::DMatrix;
+
+/// Norm² bounds outside which a deviation vector is rescaled.
+const RESCALE_ABOVE: f64 = 1.157_920_892_373_162e77; // 2^256
+const RESCALE_BELOW: f64 = 8.636_168_555_094_445e-78; // 2^-256
+
+/// If the squared norm `n2` has left [2^-256, 2^256], the power of two `s` that brings the norm
+/// back to [1, 4) and its exponent: the vector must be multiplied by `s = 2^-e`. `None` when the
+/// vector needs no rescaling. `n2` must be finite and positive.
+#[inline(always)]
+pub fn pow2_rescale(n2: f64) -> Option<(f64, i64)> {
+    if in_band(n2) {
+        return None;
+    }
+    Some(pow2_factor(n2))
+}
+
+#[cold]
+fn pow2_factor(n2: f64) -> (f64, i64) {
+    let biased = ((n2.to_bits() >> 52) & 0x7ff) as i64;
+    let e = (biased - 1023).div_euclid(2);
+    (f64::from_bits(((1023 - e) as u64) << 52), e)
+}
+
+/// Squared norm of the phase-space vector (δq, δp).
+#[inline(always)]
+pub fn norm2<const N: usize>(dq: &[f64; N], dp: &[f64; N]) -> f64 {
+    crate::real::dot(dq, dq) + crate::real::dot(dp, dp)
+}
+
+/// SALI = min(‖ŵ1 + ŵ2‖, ‖ŵ1 − ŵ2‖) of two deviation vectors given as (δq, δp).
+pub fn sali<const N: usize>(w1: (&[f64; N], &[f64; N]), w2: (&[f64; N], &[f64; N])) -> f64 {
+    let s1 = 1.0 / norm2(w1.0, w1.1).sqrt();
+    let s2 = 1.0 / norm2(w2.0, w2.1).sqrt();
+    let (mut plus, mut minus) = (0.0f64, 0.0f64);
+    for (a, b) in w1.0.iter().chain(w1.1).zip(w2.0.iter().chain(w2.1)) {
+        let (u, v) = (a * s1, b * s2);
+        plus = (u + v).mul_add(u + v, plus);
+        minus = (u - v).mul_add(u - v, minus);
+    }
+    plus.min(minus).sqrt()
+}
+
+/// Whether the two vectors may be within SALI `theta` of (anti)parallel, decided from their
+/// squared norms `a`, `b` and inner product `c` without roots or divisions. Exact SALI is only
+/// needed when this says yes. SALI² = 2 − 2|cos| ≈ 1 − cos² near alignment; the margin keeps
+/// the test conservative for any theta down to the ~1e-7 where cos² stops resolving it.
+#[inline(always)]
+pub fn may_be_aligned(a: f64, b: f64, c: f64, theta: f64) -> bool {
+    c * c >= a * b * alignment_factor(theta)
+}
+
+/// The factor of [`may_be_aligned`], hoisted by callers that screen many vectors.
+#[inline(always)]
+pub fn alignment_factor(theta: f64) -> f64 {
+    1.0 - (4.0 * theta * theta + 1e-13)
+}
+
+/// Whether a squared norm lies inside the band where no rescaling is needed.
+#[inline(always)]
+pub fn in_band(n2: f64) -> bool {
+    n2 < RESCALE_ABOVE && n2 > RESCALE_BELOW
+}
+
+/// GALI_k for k = 2..=vectors.len(): the volume spanned by the first k normalised deviation
+/// vectors, as the product of |R_ii| of a Householder QR (never a Gram determinant, whose square
+/// loses everything below ~1e-8).
+pub fn gali<const N: usize>(dq: &[[f64; N]], dp: &[[f64; N]]) -> Vec<f64> {
+    let k = dq.len();
+    let mut out = Vec::with_capacity(k.saturating_sub(1));
+    let m = DMatrix::from_fn(2 * N, k, |r, c| {
+        let n = norm2(&dq[c], &dp[c]).sqrt();
+        let v = if r < N { dq[c][r] } else { dp[c][r - N] };
+        v / n
+    });
+    for kk in 2..=k {
+        let qr = m.columns(0, kk).into_owned().qr();
+        let r = qr.r();
+        out.push((0..kk).map(|i| r[(i, i)].abs()).product());
+    }
+    out
+}
+
+/// Accumulates ln‖w‖ of a deviation vector across power-of-two rescalings.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct LogGrowth {
+    /// Σ of the exponents e of the rescalings by 2^-e.
+    pub binary_orders: i64,
+}
+
+impl LogGrowth {
+    /// ln of the vector's norm relative to its initial unit norm, given its current squared norm.
+    pub fn ln_norm(&self, n2: f64) -> f64 {
+        0.5 * n2.ln() + self.binary_orders as f64 * core::f64::consts::LN_2
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pow2_rescale_is_exact_and_lands_in_range() {
+        for n2 in [1e-200, 3.7e-90, 2.5e80, 1e300, f64::MIN_POSITIVE * 3.0] {
+            let (s, e) = pow2_rescale(n2).unwrap();
+            assert_eq!(s, 2f64.powi(-e as i32));
+            // The norm is scaled by s, its square by s².
+            let scaled = n2 * s * s;
+            assert!((1.0..4.0).contains(&scaled), "{n2} -> {scaled}");
+        }
+        assert!(pow2_rescale(1.0).is_none());
+        assert!(pow2_rescale(1e70).is_none());
+    }
+
+    #[test]
+    fn sali_of_known_configurations() {
+        let e1 = ([1.0, 0.0], [0.0, 0.0]);
+        let e2 = ([0.0, 1.0], [0.0, 0.0]);
+        let s = sali((&e1.0, &e1.1), (&e2.0, &e2.1));
+        assert!((s - 2f64.sqrt()).abs() < 1e-15);
+        // Anti-parallel at angle 1e-9 from each other: SALI = 2 sin(θ/2) ≈ 1e-9.
+        let th = 1e-9f64;
+        let a = ([1.0, 0.0], [0.0, 0.0]);
+        let b = ([-3.0 * th.cos(), -3.0 * th.sin()], [0.0, 0.0]);
+        let s = sali((&a.0, &a.1), (&b.0, &b.1));
+        assert!((s / th - 1.0).abs() < 1e-6, "{s}");
+    }
+
+    #[test]
+    fn alignment_prefilter_never_misses_a_small_sali() {
+        for &th in &[1e-3f64, 1e-5, 1e-7, 1e-9] {
+            let a = [1.0, 0.5, -0.2, 0.1];
+            let b = [1.0 + th, 0.5, -0.2, 0.1 - th];
+            let n2a: f64 = a.iter().map(|x| x * x).sum();
+            let n2b: f64 = b.iter().map(|x| x * x).sum();
+            let c: f64 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+            let s = sali(
+                (&[a[0], a[1]], &[a[2], a[3]]),
+                (&[b[0], b[1]], &[b[2], b[3]]),
+            );
+            if s < 1e-8 {
+                assert!(may_be_aligned(n2a, n2b, c, 1e-8));
+            }
+            if s < 1e-4 {
+                assert!(may_be_aligned(n2a, n2b, c, 1e-4));
+            }
+        }
+        // Orthogonal vectors are never flagged.
+        assert!(!may_be_aligned(1.0, 1.0, 0.0, 1e-8));
+    }
+
+    #[test]
+    fn gali_equals_singular_value_product_and_sali_relation() {
+        // Columns with known volume: orthogonal unit vectors give 1; a sheared pair gives |sin|.
+        let th = 0.3f64;
+        let dq = [[1.0, 0.0], [th.cos(), th.sin()], [0.0, 0.0], [0.0, 0.0]];
+        let dp = [[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [0.0, 2.0]];
+        let g = gali(&dq, &dp);
+        assert_eq!(g.len(), 3);
+        assert!((g[0] - th.sin()).abs() < 1e-15);
+        assert!((g[1] - th.sin()).abs() < 1e-15);
+        assert!((g[2] - th.sin()).abs() < 1e-15);
+        // GALI_2 = ‖ŵ1+ŵ2‖·‖ŵ1−ŵ2‖/2 and ‖ŵ1+ŵ2‖² + ‖ŵ1−ŵ2‖² = 4, so SALI/√2 ≤ GALI_2 ≤ SALI.
+        let s = sali((&dq[0], &dp[0]), (&dq[1], &dp[1]));
+        assert!(g[0] <= s * (1.0 + 1e-15) && s <= 2f64.sqrt() * g[0] * (1.0 + 1e-15));
+    }
+
+    #[test]
+    fn tiny_gali_is_resolved_where_a_gram_determinant_would_not_be() {
+        let eps = 1e-12f64;
+        let dq = [[1.0, 0.0], [1.0, eps]];
+        let dp = [[0.0, 0.0], [0.0, 0.0]];
+        let g = gali(&dq, &dp);
+        assert!((g[0] / eps - 1.0).abs() < 1e-3, "{}", g[0]);
+    }
+}

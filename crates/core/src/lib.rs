@@ -1,0 +1,24 @@
+//! The numerical kernel of Salient: Hamiltonians H = ½|p|² + V(q) ([`Hamiltonian`],
+//! [`HenonHeiles`]), symplectic splitting schemes as data ([`Scheme`]), the tangent-map method
+//! that advances an orbit and its deviation vectors together ([`TangentMap`], and
+//! [`batch::Batch`] for several orbits in SIMD lanes), chaos indicators (SALI, GALI_k, the
+//! maximal Lyapunov exponent), section crossings, and the one-orbit driver ([`orbit`]).
+//!
+//! No I/O, no threads, no async: callers own all of that.
+
+pub mod batch;
+pub mod hamiltonian;
+pub mod indicators;
+pub mod method;
+pub mod orbit;
+pub mod real;
+pub mod scheme;
+pub mod section;
+pub mod tangent;
+
+pub use hamiltonian::{Hamiltonian, HenonHeiles};
+pub use method::Method;
+pub use orbit::{Class, Deviation, OrbitConfig, OrbitResult, Requests, Status, Thresholds};
+pub use scheme::Scheme;
+pub use section::Crossing;
+pub use tangent::{Phase, TangentMap};

@@ -1,0 +1,100 @@
+//! The batched stepper gives, lane by lane, exactly the bits of the one-orbit driver.
+
+use salient_core::batch::integrate_batch;
+use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests};
+use salient_core::section::on_section;
+use salient_core::{HenonHeiles, Scheme, TangentMap};
+
+fn same_bits(a: &OrbitResult<2>, b: &OrbitResult<2>) -> bool {
+    let f = |x: f64| x.to_bits();
+    a.status == b.status
+        && a.class == b.class
+        && a.steps == b.steps
+        && f(a.t_reached) == f(b.t_reached)
+        && f(a.sali) == f(b.sali)
+        && f(a.mle) == f(b.mle)
+        && a.gali
+            .iter()
+            .map(|&x| f(x))
+            .eq(b.gali.iter().map(|&x| f(x)))
+        && a.energy_error_max.map(f) == b.energy_error_max.map(f)
+        && a.crossings.len() == b.crossings.len()
+        && a.crossings.iter().zip(&b.crossings).all(|(c, d)| {
+            f(c.t) == f(d.t)
+                && c.q
+                    .iter()
+                    .chain(&c.p)
+                    .zip(d.q.iter().chain(&d.p))
+                    .all(|(x, y)| f(*x) == f(*y))
+        })
+}
+
+/// A spread of section points: regular, chaotic, and (at a second energy) escaping orbits.
+fn ics() -> Vec<([f64; 2], [f64; 2])> {
+    let mut v = Vec::new();
+    for i in 0..9 {
+        for j in 0..5 {
+            let (q2, p2) = (-0.42 + 0.13 * i as f64, -0.45 + 0.22 * j as f64);
+            if let Ok(x) = on_section(&HenonHeiles, 0.125, &[q2], &[p2]) {
+                v.push(x);
+            }
+            if let Ok(x) = on_section(&HenonHeiles, 0.2, &[q2], &[p2]) {
+                v.push(x);
+            }
+        }
+    }
+    v
+}
+
+fn check<const L: usize>(scheme: &str, tau: f64, t_final: f64, requests: Requests) {
+    let ham = HenonHeiles;
+    let map = TangentMap::new(&ham, &Scheme::by_name(scheme).unwrap(), tau);
+    let ics = ics();
+    let cfg = OrbitConfig::new(tau, t_final);
+    let mut got: Vec<Option<OrbitResult<2>>> = vec![None; ics.len()];
+    integrate_batch::<_, 2, 2, L>(&map, &ics, &cfg, &requests, |i, r| {
+        assert!(got[i].is_none(), "orbit {i} reported twice");
+        got[i] = Some(r);
+    });
+    let mut statuses = std::collections::HashSet::new();
+    for (i, (q, p)) in ics.iter().enumerate() {
+        let want = integrate::<_, 2, 2>(&map, *q, *p, &cfg, &requests);
+        let have = got[i].as_ref().expect("every orbit reported");
+        assert!(
+            same_bits(have, &want),
+            "{scheme} L={L} orbit {i}:\n batch  {have:?}\n scalar {want:?}"
+        );
+        statuses.insert(want.status);
+    }
+    // The sample covers the interesting paths: full runs, early stops and escapes.
+    if t_final > 0.0 {
+        assert!(statuses.len() >= 2, "{statuses:?}");
+    }
+    if t_final >= 1000.0 {
+        assert!(statuses.len() >= 3, "{statuses:?}");
+    }
+}
+
+#[test]
+fn batched_lanes_equal_scalar_orbits_bit_for_bit() {
+    check::<4>("sbab2c", 0.5, 0.0, Requests::default());
+    let crossings = Requests {
+        crossings: true,
+        ..Requests::default()
+    };
+    check::<4>("sbab2c", 0.05, 1500.0, crossings);
+    check::<8>("sbab2c", 0.5, 3000.0, crossings);
+    check::<4>("saba2c", 0.1, 1000.0, Requests::default());
+    check::<8>(
+        "srkn14a",
+        0.25,
+        1000.0,
+        Requests {
+            energy: true,
+            gali: true,
+            ..crossings
+        },
+    );
+    // More lanes than orbits, and orbits that end before their first step.
+    check::<64>("sbab2c", 0.5, 200.0, crossings);
+}

@@ -1,0 +1,26 @@
+#![allow(dead_code)]
+
+use salient_core::section::on_section;
+use salient_core::HenonHeiles;
+
+pub const ENERGY: f64 = 0.125;
+
+/// A Hénon–Heiles point on the section q1 = 0, p1 > 0 at H = 1/8.
+pub fn ic(q2: f64, p2: f64) -> ([f64; 2], [f64; 2]) {
+    on_section(&HenonHeiles, ENERGY, &[q2], &[p2]).expect("IC on the section")
+}
+
+/// The seed paper's named orbits (research/symplectic-sali.md §7.3).
+pub fn r1() -> ([f64; 2], [f64; 2]) {
+    ic(0.558, 0.0)
+}
+pub fn c1() -> ([f64; 2], [f64; 2]) {
+    ic(-0.25, 0.0)
+}
+
+/// Max-norm distance between two phase-space points.
+pub fn dist(a: &([f64; 2], [f64; 2]), b: &([f64; 2], [f64; 2])) -> f64 {
+    (0..2)
+        .map(|i| (a.0[i] - b.0[i]).abs().max((a.1[i] - b.1[i]).abs()))
+        .fold(0.0, f64::max)
+}

@@ -1,0 +1,248 @@
+//! Accuracy of the tangent-map integrators: convergence orders, tangent maps against finite
+//! differences, symplecticity, energy conservation and an exact periodic orbit.
+
+mod common;
+
+use common::{dist, ic, r1};
+use salient_core::orbit::{integrate, OrbitConfig, Requests};
+use salient_core::tangent::{Phase, Stepping};
+use salient_core::{Hamiltonian, HenonHeiles, Scheme, TangentMap};
+
+/// The orbit alone advanced to `t` with steps τ through the production (merged) stepping loop.
+fn orbit_at(scheme: &Scheme, tau: f64, t: f64, x0: ([f64; 2], [f64; 2])) -> ([f64; 2], [f64; 2]) {
+    let ham = HenonHeiles;
+    let map = TangentMap::new(&ham, scheme, tau);
+    let mut s = Stepping::new(
+        &map,
+        Phase::<f64, 2, 0> {
+            q: x0.0,
+            p: x0.1,
+            dq: [],
+            dp: [],
+        },
+    );
+    for _ in 0..(t / tau).round() as u64 {
+        s.advance();
+    }
+    (s.x.q, s.x.p)
+}
+
+/// Observed order from runs at τ and τ/2 against a reference run of SRKN14a at τ = 1e-3.
+fn observed_order(scheme: &Scheme, tau: f64) -> f64 {
+    let reference = orbit_at(&Scheme::by_name("srkn14a").unwrap(), 1e-3, 10.0, r1());
+    let e1 = dist(&orbit_at(scheme, tau, 10.0, r1()), &reference);
+    let e2 = dist(&orbit_at(scheme, tau / 2.0, 10.0, r1()), &reference);
+    (e1 / e2).log2()
+}
+
+#[test]
+fn convergence_orders_on_r1_match_theory() {
+    for scheme in Scheme::all() {
+        // Steps where the error is far above round-off and in the asymptotic regime.
+        let tau = match scheme.order {
+            6 => 0.3125,
+            4 if scheme.name == "aba864" => 0.25,
+            _ => 0.1,
+        };
+        let order = observed_order(&scheme, tau);
+        eprintln!("{:>8}: observed order {order:.3}", scheme.name);
+        assert!(
+            (order - scheme.order as f64).abs() <= 0.2,
+            "{}: observed order {order:.3}, expected {}",
+            scheme.name,
+            scheme.order
+        );
+    }
+}
+
+#[test]
+fn a_corrector_with_the_wrong_sign_is_caught_by_the_order_test() {
+    for name in ["sbab2c", "saba2c", "sbab3c", "saba4c"] {
+        let good = Scheme::by_name(name).unwrap();
+        let bad = good.with_corrector(-good.corrector);
+        let order = observed_order(&bad, 0.1);
+        assert!(
+            (order - 4.0).abs() > 0.2,
+            "{name} with the wrong corrector sign still shows order {order:.3}"
+        );
+        assert!(
+            (order - 2.0).abs() < 0.3,
+            "{name}: wrong sign gives order {order:.3}"
+        );
+    }
+}
+
+/// The one-step tangent matrix M (columns = images of the 4 axes) at x.
+fn tangent_matrix(
+    map: &TangentMap<'_, HenonHeiles>,
+    x: ([f64; 2], [f64; 2]),
+    h: f64,
+) -> [[f64; 4]; 4] {
+    let mut ph: Phase<f64, 2, 4> = Phase::zero();
+    ph.q = x.0;
+    ph.p = x.1;
+    for k in 0..4 {
+        if k < 2 {
+            ph.dq[k][k] = 1.0;
+        } else {
+            ph.dp[k][k - 2] = 1.0;
+        }
+    }
+    map.step(&mut ph, h);
+    let mut m = [[0.0; 4]; 4];
+    for k in 0..4 {
+        for i in 0..2 {
+            m[i][k] = ph.dq[k][i];
+            m[i + 2][k] = ph.dp[k][i];
+        }
+    }
+    m
+}
+
+#[test]
+fn tangent_map_is_the_jacobian_of_the_numerical_step_and_symplectic() {
+    let ham = HenonHeiles;
+    let points = [r1(), ic(-0.25, 0.0), ic(0.1, 0.3), ic(0.335036, -0.385631)];
+    for scheme in Scheme::all() {
+        for tau in [0.05, 0.5] {
+            let map = TangentMap::new(&ham, &scheme, tau);
+            for x in points {
+                let m = tangent_matrix(&map, x, tau);
+                // Central finite differences of the orbit-only step.
+                let e = 1e-5;
+                for k in 0..4 {
+                    let mut xp = x;
+                    let mut xm = x;
+                    if k < 2 {
+                        xp.0[k] += e;
+                        xm.0[k] -= e;
+                    } else {
+                        xp.1[k - 2] += e;
+                        xm.1[k - 2] -= e;
+                    }
+                    map.orbit_step(&mut xp.0, &mut xp.1, tau);
+                    map.orbit_step(&mut xm.0, &mut xm.1, tau);
+                    for i in 0..4 {
+                        let (a, b) = if i < 2 {
+                            (xp.0[i], xm.0[i])
+                        } else {
+                            (xp.1[i - 2], xm.1[i - 2])
+                        };
+                        let fd = (a - b) / (2.0 * e);
+                        let scale = m[i][k].abs().max(1.0);
+                        assert!(
+                            (fd - m[i][k]).abs() <= 1e-7 * scale,
+                            "{} τ={tau}: M[{i}][{k}] = {} but finite differences give {fd}",
+                            scheme.name,
+                            m[i][k]
+                        );
+                    }
+                }
+                // MᵀJM = J with J = [[0, I], [−I, 0]].
+                let j = |r: usize, c: usize| match (r, c) {
+                    (0, 2) | (1, 3) => 1.0,
+                    (2, 0) | (3, 1) => -1.0,
+                    _ => 0.0,
+                };
+                for r in 0..4 {
+                    for c in 0..4 {
+                        let mut s = 0.0;
+                        for a in 0..4 {
+                            for b in 0..4 {
+                                s += m[a][r] * j(a, b) * m[b][c];
+                            }
+                        }
+                        assert!(
+                            (s - j(r, c)).abs() <= 1e-12,
+                            "{} τ={tau}: (MᵀJM)[{r}][{c}] = {s}",
+                            scheme.name
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn sbab2c_conserves_r1_energy_without_secular_growth() {
+    let ham = HenonHeiles;
+    let scheme = Scheme::by_name("sbab2c").unwrap();
+    let tau = 0.05;
+    let map = TangentMap::new(&ham, &scheme, tau);
+    let x0 = r1();
+    let h0 = ham.energy(&x0.0, &x0.1);
+    let mut s = Stepping::new(
+        &map,
+        Phase::<f64, 2, 0> {
+            q: x0.0,
+            p: x0.1,
+            dq: [],
+            dp: [],
+        },
+    );
+    let n = (1e5 / tau) as u64;
+    let (mut first_half, mut second_half) = (0.0f64, 0.0f64);
+    for i in 1..=n {
+        s.advance();
+        let e = ((ham.energy(&s.x.q, &s.x.p) - h0) / h0).abs();
+        if i <= n / 2 {
+            first_half = first_half.max(e);
+        } else {
+            second_half = second_half.max(e);
+        }
+    }
+    assert!(
+        first_half.max(second_half) < 5e-7,
+        "max |ΔH/H| = {}",
+        first_half.max(second_half)
+    );
+    // A bounded oscillation has the same envelope in both halves; drift would grow it.
+    assert!(
+        second_half < 1.25 * first_half,
+        "envelope grew: {first_half:e} → {second_half:e}"
+    );
+}
+
+#[test]
+fn straight_line_periodic_orbit_returns_after_its_exact_period() {
+    // Through (q2, p2) = (0, ±1/4): period 7.5432594126750786 (research note §7.2, mpmath).
+    const PERIOD: f64 = 7.543_259_412_675_078_6;
+    let ham = HenonHeiles;
+    let map = TangentMap::new(&ham, &Scheme::by_name("srkn14a").unwrap(), 1e-3);
+    for p2 in [0.25, -0.25] {
+        let x0 = ic(0.0, p2);
+        assert!((x0.1[0] - 3f64.sqrt() / 4.0).abs() < 1e-16);
+        let cfg = OrbitConfig::new(1e-3, 8.0);
+        let req = Requests {
+            crossings: true,
+            ..Requests::default()
+        };
+        let res = integrate::<_, 2, 2>(&map, x0.0, x0.1, &cfg, &req);
+        assert_eq!(res.crossings.len(), 1, "one return within t = 8");
+        let c = res.crossings[0];
+        assert!(
+            (c.t - PERIOD).abs() < 1e-8,
+            "return time {} vs {PERIOD}",
+            c.t
+        );
+        assert!(c.q[1].abs() < 1e-9 && (c.p[1] - p2).abs() < 1e-9, "{c:?}");
+        assert!(c.q[0].abs() < 1e-12 && c.p[0] > 0.0);
+    }
+}
+
+#[test]
+fn time_is_exact_after_many_steps() {
+    let ham = HenonHeiles;
+    let map = TangentMap::new(&ham, &Scheme::by_name("sbab2c").unwrap(), 0.1);
+    let x0 = r1();
+    let res = integrate::<_, 2, 2>(
+        &map,
+        x0.0,
+        x0.1,
+        &OrbitConfig::new(0.1, 1e5),
+        &Requests::default(),
+    );
+    assert_eq!(res.steps, 1_000_000);
+    assert_eq!(res.t_reached, 1e5);
+}
