@@ -1,1 +1,47 @@
-//! End-to-end tests live in `tests/tests/`; this library only locates the `salient` binary.
+//! Helpers for the end-to-end tests in `tests/tests/`: they run the real `salient` binary,
+//! which `scripts/test.sh` builds before `cargo test` (cargo does not build another package's
+//! binary for a test).
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+/// Path of the `salient` binary next to this test executable's profile directory.
+pub fn salient_path() -> PathBuf {
+    if let Ok(p) = std::env::var("SALIENT_BIN") {
+        return PathBuf::from(p);
+    }
+    let exe = std::env::current_exe().expect("test executable path");
+    // target/<profile>/deps/<test> → target/<profile>/salient
+    let profile_dir = exe
+        .parent()
+        .and_then(|d| d.parent())
+        .expect("target/<profile>");
+    let bin = profile_dir.join(format!("salient{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        bin.exists(),
+        "{} is missing: build it first with `cargo build -p salient-cli` (scripts/test.sh does)",
+        bin.display()
+    );
+    bin
+}
+
+/// Runs `salient` with `args` and returns its output.
+pub fn salient(args: &[&str]) -> Output {
+    Command::new(salient_path())
+        .args(args)
+        .output()
+        .expect("run salient")
+}
+
+/// The single JSON object a `--json` run printed.
+pub fn json_stdout(out: &Output) -> serde_json::Value {
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "salient failed ({:?}): {}",
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_str(text.trim())
+        .unwrap_or_else(|e| panic!("stdout is not one JSON object ({e}): {text}"))
+}

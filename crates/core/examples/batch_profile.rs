@@ -1,3 +1,6 @@
+//! Profiling target for the batched stepper (`perf record ./target/release/examples/batch_profile`):
+//! 64 regular orbits, SBAB2C τ = 0.05, t = 1e4, 8 lanes; prints ns per orbit-step.
+
 use salient_core::batch::integrate_batch;
 use salient_core::orbit::{OrbitConfig, Requests};
 use salient_core::section::on_section;

@@ -142,6 +142,8 @@ pub fn integrate_batch<H: Hamiltonian<N>, const N: usize, const K: usize, const 
             core::array::from_fn(|k| dot(&x.dq[k], &x.dq[k]) + dot(&x.dp[k], &x.dp[k]));
         let c = dot(&x.dq[0], &x.dq[1]) + dot(&x.dp[0], &x.dp[1]);
         let mut flagged = [false; L];
+        // `!(a <= b)` is true for NaN too, which is the point.
+        #[allow(clippy::neg_cmp_op_on_partial_ord)]
         for l in 0..L {
             n[l] += 1;
             let mut f = every_step | (n[l] >= n_final) | !(r2.0[l] <= r2_max);

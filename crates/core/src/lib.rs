@@ -6,6 +6,9 @@
 //!
 //! No I/O, no threads, no async: callers own all of that.
 
+// Index loops over phase-space components mirror the formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
 pub mod batch;
 pub mod hamiltonian;
 pub mod indicators;

@@ -381,8 +381,9 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
     where
         H: Hamiltonian<N>,
     {
-        // A non-finite p shows up in q one drift later.
+        // A non-finite p shows up in q one drift later; `!(a <= b)` also catches NaN.
         let r2 = dot(&x.q, &x.q);
+        #[allow(clippy::neg_cmp_op_on_partial_ord)]
         if !(r2 <= self.r2_max) {
             self.status = if r2.is_finite() {
                 Status::Escaped

@@ -9,6 +9,9 @@
 //! Coefficients and orders: research/symplectic-sali.md §1.2–§1.5 and §3.1–§3.2 (Laskar &
 //! Robutel 2001; Blanes et al. 2013 for ABA864; Blanes & Moan 2002 for SRKN^a_14).
 
+// Coefficients keep the digits their sources publish; f64 rounds them once.
+#![allow(clippy::excessive_precision)]
+
 /// One sub-map of a splitting step, with coefficients as fractions of the step τ.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Op {
@@ -119,7 +122,17 @@ impl Scheme {
     /// Every scheme Salient knows, in the order the CLI lists them.
     pub fn all() -> Vec<Scheme> {
         let mut v = Vec::new();
-        let table: [(&str, &str, First, &[f64], f64, u32, u32); 8] = [
+        // name, corrected name, first sub-map, half sequence, g, order, corrected order
+        type Family = (
+            &'static str,
+            &'static str,
+            First,
+            &'static [f64],
+            f64,
+            u32,
+            u32,
+        );
+        let table: [Family; 8] = [
             ("saba1", "saba1c", First::Drift, SABA1, G_SABA1, 2, 2),
             ("saba2", "saba2c", First::Drift, SABA2, G_SABA2, 2, 4),
             ("saba3", "saba3c", First::Drift, SABA3, G_SABA3, 2, 4),

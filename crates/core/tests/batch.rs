@@ -1,5 +1,7 @@
 //! The batched stepper gives, lane by lane, exactly the bits of the one-orbit driver.
 
+#![allow(clippy::needless_range_loop, clippy::excessive_precision)]
+
 use salient_core::batch::integrate_batch;
 use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests};
 use salient_core::section::on_section;

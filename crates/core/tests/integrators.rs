@@ -1,6 +1,8 @@
 //! Accuracy of the tangent-map integrators: convergence orders, tangent maps against finite
 //! differences, symplecticity, energy conservation and an exact periodic orbit.
 
+#![allow(clippy::needless_range_loop, clippy::excessive_precision)]
+
 mod common;
 
 use common::{dist, ic, r1};

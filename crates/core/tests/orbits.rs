@@ -1,6 +1,8 @@
 //! Named orbits, indicators and section crossings, plus property tests over random initial
 //! conditions on the section.
 
+#![allow(clippy::needless_range_loop, clippy::excessive_precision)]
+
 mod common;
 
 use common::{c1, ic, r1, ENERGY};

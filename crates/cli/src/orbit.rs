@@ -1,0 +1,413 @@
+//! `salient orbit`: one orbit, its indicators, and (with `--out`) a time series and plots.
+
+use crate::usage::{finite, positive, runtime, CliError, CliResult};
+use clap::{Args, ValueEnum};
+use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests, Thresholds};
+use salient_core::section::on_section;
+use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method, TangentMap};
+use salient_report::{render_loglog_png, HLine, Line, LogLogPlot, ReportError};
+use serde_json::{json, Map, Value};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Refuse runs beyond this many steps: a typo in --t-final should not start a year-long job.
+const MAX_STEPS: f64 = 1e12;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Protocol {
+    Restart,
+    Free,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum DeviationKind {
+    Axes,
+    Random,
+}
+
+#[derive(Args, Debug)]
+#[command(allow_negative_numbers = true)]
+pub struct OrbitArgs {
+    /// q2 of the initial condition on the section q1 = 0 (p1 > 0 follows from the energy).
+    #[arg(long)]
+    q2: f64,
+    /// p2 of the initial condition.
+    #[arg(long)]
+    p2: f64,
+    /// Energy H of the orbit.
+    #[arg(long, default_value_t = 0.125)]
+    energy: f64,
+    /// Integration method, e.g. tm-sbab2c, tm-srkn14a.
+    #[arg(long)]
+    method: String,
+    /// Step τ of the tangent-map methods; deviation vectors are renormalised and SALI checked
+    /// every τ.
+    #[arg(long, default_value_t = 0.05)]
+    tau: f64,
+    /// Tolerance of the adaptive methods (ignored by tm-* methods).
+    #[arg(long)]
+    delta: Option<f64>,
+    /// Protocol of the adaptive methods (ignored by tm-* methods).
+    #[arg(long, value_enum)]
+    protocol: Option<Protocol>,
+    /// Final time.
+    #[arg(long = "t-final")]
+    t_final: f64,
+    /// Write series.csv, crossings.csv, orbit.json and the plots here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print exactly one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+    /// Follow 2N deviation vectors for GALI_2..GALI_2N (default: 2 vectors, SALI and GALI_2).
+    #[arg(long)]
+    gali_all: bool,
+    /// SALI at or above which an orbit is regular.
+    #[arg(long, default_value_t = 1e-4)]
+    regular: f64,
+    /// SALI below which an orbit is chaotic.
+    #[arg(long, default_value_t = 1e-8)]
+    chaotic: f64,
+    /// Integrate to t_final even after SALI falls below the chaotic threshold.
+    #[arg(long)]
+    no_early_stop: bool,
+    /// Initial deviation vectors: the phase-space axes, or seeded random unit vectors.
+    #[arg(long, value_enum, default_value = "axes")]
+    deviation: DeviationKind,
+    /// Seed of the random deviation vectors.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Samples per decade of t in series.csv.
+    #[arg(long, default_value_t = 20)]
+    samples_per_decade: u32,
+}
+
+/// A validated orbit request.
+struct OrbitJob {
+    method: Method,
+    q: [f64; 2],
+    p: [f64; 2],
+    config: OrbitConfig,
+    requests: Requests,
+    gali_all: bool,
+    warnings: Vec<String>,
+}
+
+fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
+    let method = Method::parse(&a.method).map_err(|e| CliError::Usage(format!("--method: {e}")))?;
+    let q2 = finite("--q2", a.q2)?;
+    let p2 = finite("--p2", a.p2)?;
+    let energy = finite("--energy", a.energy)?;
+    let tau = positive("--tau", a.tau)?;
+    if !(a.t_final.is_finite() && a.t_final >= tau) {
+        return Err(CliError::Usage(format!(
+            "--t-final must be a finite number ≥ --tau = {tau} (got {})",
+            a.t_final
+        )));
+    }
+    if a.t_final / tau > MAX_STEPS {
+        return Err(CliError::Usage(format!(
+            "--t-final / --tau = {:.3e} steps; at most {MAX_STEPS:e} steps are allowed",
+            a.t_final / tau
+        )));
+    }
+    let mut warnings = Vec::new();
+    if let Some(d) = a.delta {
+        positive("--delta", d)?;
+        warnings.push(format!(
+            "--delta is ignored by {}: its accuracy is set by --tau",
+            method.name()
+        ));
+    }
+    if a.protocol.is_some() {
+        warnings.push(format!(
+            "--protocol is ignored by {}: it steps exactly to every τ",
+            method.name()
+        ));
+    }
+    let regular = positive("--regular", a.regular)?;
+    let chaotic = positive("--chaotic", a.chaotic)?;
+    if !(chaotic <= regular && regular <= 2f64.sqrt()) {
+        return Err(CliError::Usage(format!(
+            "--chaotic and --regular must satisfy 0 < chaotic ≤ regular ≤ √2 (got {chaotic}, {regular})"
+        )));
+    }
+    if a.samples_per_decade > 1000 {
+        return Err(CliError::Usage(format!(
+            "--samples-per-decade must be in 0..=1000 (got {})",
+            a.samples_per_decade
+        )));
+    }
+    let (q, p) = on_section(&HenonHeiles, energy, &[q2], &[p2]).map_err(|_| {
+        let e_min = HenonHeiles.potential(&[0.0, q2]) + 0.5 * p2 * p2;
+        CliError::Usage(format!(
+            "--energy {energy}: (q2, p2) = ({q2}, {p2}) is not on the section q1 = 0, p1 > 0; \
+             allowed: --energy > {e_min} for this point"
+        ))
+    })?;
+    let deviation = match a.deviation {
+        DeviationKind::Axes => Deviation::Axes,
+        DeviationKind::Random => Deviation::Random { seed: a.seed },
+    };
+    let config = OrbitConfig {
+        tau,
+        t_final: a.t_final,
+        thresholds: Thresholds {
+            regular,
+            chaotic,
+            early_stop: !a.no_early_stop,
+        },
+        deviation,
+        escape_radius: None,
+    };
+    let requests = Requests {
+        crossings: true,
+        gali: true,
+        energy: true,
+        samples_per_decade: if a.out.is_some() {
+            a.samples_per_decade
+        } else {
+            0
+        },
+    };
+    Ok(OrbitJob {
+        method,
+        q,
+        p,
+        config,
+        requests,
+        gali_all: a.gali_all,
+        warnings,
+    })
+}
+
+pub fn run(args: OrbitArgs) -> CliResult<()> {
+    let job = validate(&args)?;
+    let ham = HenonHeiles;
+    let Method::TangentMap(scheme) = &job.method;
+    let map = TangentMap::new(&ham, scheme, job.config.tau);
+    let start = Instant::now();
+    let result: OrbitResult<2> = if job.gali_all {
+        integrate::<_, 2, 4>(&map, job.q, job.p, &job.config, &job.requests)
+    } else {
+        integrate::<_, 2, 2>(&map, job.q, job.p, &job.config, &job.requests)
+    };
+    let wall = start.elapsed().as_secs_f64();
+    let mut summary = summary_json(&job, &result, wall);
+    if let Some(dir) = &args.out {
+        let mut warnings = write_outputs(dir, &job, &result, &summary)?;
+        if let Some(Value::Array(w)) = summary.get_mut("warnings") {
+            w.extend(warnings.drain(..).map(Value::String));
+        }
+        summary["out_dir"] = json!(dir.display().to_string());
+        write_file(
+            &dir.join("orbit.json"),
+            &(serde_json::to_string_pretty(&summary).unwrap() + "\n"),
+        )?;
+    }
+    if args.json {
+        println!("{summary}");
+    } else {
+        print!("{}", summary_text(&summary));
+    }
+    Ok(())
+}
+
+fn summary_json(job: &OrbitJob, r: &OrbitResult<2>, wall: f64) -> Value {
+    let mut gali = Map::new();
+    for (i, g) in r.gali.iter().enumerate() {
+        gali.insert((i + 2).to_string(), json!(g));
+    }
+    json!({
+        "method": job.method.name(),
+        "tau": job.config.tau,
+        "delta": Value::Null,
+        "t_final": job.config.t_final,
+        "t_reached": r.t_reached,
+        "status": r.status.as_str(),
+        "class": r.class.map(|c| c.as_str()),
+        "sali": r.sali,
+        "gali": gali,
+        "mle": r.mle,
+        "energy_error_max": r.energy_error_max,
+        "steps": r.steps,
+        "crossings": r.crossings.len(),
+        "wall_s": wall,
+        "ns_per_step": if r.steps > 0 { wall * 1e9 / r.steps as f64 } else { 0.0 },
+        "initial": { "q1": job.q[0], "q2": job.q[1], "p1": job.p[0], "p2": job.p[1] },
+        "warnings": job.warnings,
+    })
+}
+
+fn summary_text(s: &Value) -> String {
+    let num = |k: &str| {
+        s[k].as_f64()
+            .map_or("—".to_string(), |v| format!("{v:.4e}"))
+    };
+    let mut t = String::new();
+    let _ = writeln!(
+        t,
+        "{}  τ = {}  t_final = {}",
+        s["method"].as_str().unwrap_or(""),
+        s["tau"],
+        s["t_final"]
+    );
+    let _ = writeln!(
+        t,
+        "status {}  class {}  t_reached {}",
+        s["status"].as_str().unwrap_or(""),
+        s["class"].as_str().unwrap_or("—"),
+        s["t_reached"]
+    );
+    let mut gali = String::new();
+    if let Some(g) = s["gali"].as_object() {
+        for (k, v) in g {
+            let _ = write!(
+                gali,
+                "  GALI_{k} {}",
+                v.as_f64().map_or("—".into(), |v| format!("{v:.4e}"))
+            );
+        }
+    }
+    let _ = writeln!(
+        t,
+        "SALI {}{gali}  mLE {}  max|ΔH/H| {}",
+        num("sali"),
+        num("mle"),
+        num("energy_error_max")
+    );
+    let _ = writeln!(
+        t,
+        "steps {}  crossings {}  wall {:.3} s  {:.1} ns/step",
+        s["steps"],
+        s["crossings"],
+        s["wall_s"].as_f64().unwrap_or(0.0),
+        s["ns_per_step"].as_f64().unwrap_or(0.0)
+    );
+    if let Some(w) = s["warnings"].as_array() {
+        for w in w {
+            let _ = writeln!(t, "warning: {}", w.as_str().unwrap_or(""));
+        }
+    }
+    if let Some(d) = s["out_dir"].as_str() {
+        let _ = writeln!(
+            t,
+            "wrote {d}/series.csv, crossings.csv, indicators.png, energy.png, orbit.json"
+        );
+    }
+    t
+}
+
+fn write_file(path: &Path, text: &str) -> CliResult<()> {
+    std::fs::write(path, text).map_err(|e| runtime(&format!("writing {}", path.display()), e))
+}
+
+/// Writes series.csv, crossings.csv and the two plots; returns warnings for plots that had
+/// nothing to draw.
+fn write_outputs(
+    dir: &Path,
+    job: &OrbitJob,
+    r: &OrbitResult<2>,
+    _summary: &Value,
+) -> CliResult<Vec<String>> {
+    std::fs::create_dir_all(dir).map_err(|e| runtime(&format!("creating {}", dir.display()), e))?;
+    let k_max = r.series.first().map_or(0, |s| s.gali.len()) + 1;
+    let mut csv = String::from("t,sali");
+    for k in 2..=k_max {
+        let _ = write!(csv, ",gali_{k}");
+    }
+    csv.push_str(",mle,energy_error\n");
+    for s in &r.series {
+        let _ = write!(csv, "{},{}", s.t, s.sali);
+        for g in &s.gali {
+            let _ = write!(csv, ",{g}");
+        }
+        let _ = writeln!(csv, ",{},{}", s.mle, s.energy_error);
+    }
+    write_file(&dir.join("series.csv"), &csv)?;
+
+    let mut cross = String::from("t,q2,p2,p1\n");
+    for c in &r.crossings {
+        let _ = writeln!(cross, "{},{},{},{}", c.t, c.q[1], c.p[1], c.p[0]);
+    }
+    write_file(&dir.join("crossings.csv"), &cross)?;
+
+    let t: Vec<f64> = r.series.iter().map(|s| s.t).collect();
+    let sali: Vec<f64> = r.series.iter().map(|s| s.sali).collect();
+    let gali: Vec<Vec<f64>> = (0..k_max.saturating_sub(1))
+        .map(|k| r.series.iter().map(|s| s.gali[k]).collect())
+        .collect();
+    let labels: Vec<String> = (2..=k_max).map(|k| format!("GALI_{k}")).collect();
+    let mut lines = vec![Line {
+        label: "SALI",
+        xs: &t,
+        ys: &sali,
+    }];
+    for (g, l) in gali.iter().zip(&labels) {
+        lines.push(Line {
+            label: l,
+            xs: &t,
+            ys: g,
+        });
+    }
+    let title = format!(
+        "{} τ = {}  (q2, p2) = ({}, {})",
+        job.method.name(),
+        job.config.tau,
+        job.q[1],
+        job.p[1]
+    );
+    let mut warnings = Vec::new();
+    let th = job.config.thresholds;
+    let (regular_label, chaotic_label) = (
+        format!("regular ≥ {:e}", th.regular),
+        format!("chaotic < {:e}", th.chaotic),
+    );
+    let indicators = LogLogPlot {
+        title: &title,
+        x_label: "t",
+        y_label: "SALI, GALI",
+        lines,
+        hlines: vec![
+            HLine {
+                label: &regular_label,
+                y: th.regular,
+            },
+            HLine {
+                label: &chaotic_label,
+                y: th.chaotic,
+            },
+        ],
+        point_labels: Vec::new(),
+        markers: false,
+    };
+    plot(&indicators, &dir.join("indicators.png"), &mut warnings)?;
+    let energy: Vec<f64> = r.series.iter().map(|s| s.energy_error).collect();
+    let energy_plot = LogLogPlot {
+        title: &title,
+        x_label: "t",
+        y_label: "|ΔH/H|",
+        lines: vec![Line {
+            label: "|ΔH/H|",
+            xs: &t,
+            ys: &energy,
+        }],
+        hlines: Vec::new(),
+        point_labels: Vec::new(),
+        markers: false,
+    };
+    plot(&energy_plot, &dir.join("energy.png"), &mut warnings)?;
+    Ok(warnings)
+}
+
+fn plot(p: &LogLogPlot, path: &Path, warnings: &mut Vec<String>) -> CliResult<()> {
+    match render_loglog_png(p, path, 1000, 700) {
+        Ok(()) => Ok(()),
+        Err(ReportError::EmptyData(what)) => {
+            warnings.push(format!("{} not drawn: {what}", path.display()));
+            Ok(())
+        }
+        Err(e) => Err(runtime(&format!("plotting {}", path.display()), e)),
+    }
+}

@@ -1,0 +1,24 @@
+//! Reports of Salient's results: everything that turns computed numbers into files for people
+//! and other programs.
+//!
+//! By design this crate owns the tables (Markdown, CSV, JSON), the `.npy` array writers, and the
+//! PNG maps and plots; nothing here integrates or computes indicators. So far only the plots
+//! exist:
+//!
+//! * [`render_loglog_png`] draws lines on log-log axes (SALI/GALI against time, work-precision
+//!   diagrams), with dashed reference lines and a legend;
+//! * [`render_grey_map_png`] draws a scalar field over a 2-D grid in grey levels, with a colour
+//!   bar.
+//!
+//! Text is set in DejaVu Sans, embedded in the library (`assets/DejaVuSans.ttf`, licence in
+//! `assets/DejaVuSans-LICENSE.txt`), so plots render the same on headless machines without any
+//! system fonts.
+
+mod canvas;
+mod error;
+mod greymap;
+mod loglog;
+
+pub use error::ReportError;
+pub use greymap::{render_grey_map_png, GREY_MAP_SIZE, NAN_COLOUR};
+pub use loglog::{render_loglog_png, HLine, Line, LogLogPlot};
