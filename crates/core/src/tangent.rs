@@ -183,6 +183,23 @@ pub struct TangentMap<'h, H> {
     edge: SubMap,
     /// The sub-maps strictly between the two ends, scaled by τ.
     body: Vec<SubMap>,
+    /// The body as alternating drifts and plain kicks (every scheme here has this shape):
+    /// whether it starts with a drift, and the scaled coefficients.
+    alternating: Option<(bool, Vec<f64>)>,
+}
+
+/// Whether `body` alternates drifts and plain kicks, and if so its coefficients.
+fn alternating_shape(body: &[SubMap]) -> Option<(bool, Vec<f64>)> {
+    let drift_first = body.first()?.is_drift();
+    let mut coeffs = Vec::with_capacity(body.len());
+    for (i, op) in body.iter().enumerate() {
+        match (*op, (i % 2 == 0) == drift_first) {
+            (SubMap::Drift(a), true) => coeffs.push(a),
+            (SubMap::Kick(b), false) => coeffs.push(b),
+            _ => return None,
+        }
+    }
+    Some((drift_first, coeffs))
 }
 
 impl<'h, H> TangentMap<'h, H> {
@@ -191,7 +208,9 @@ impl<'h, H> TangentMap<'h, H> {
         let scaled: Vec<SubMap> = ops.iter().map(|&o| SubMap::scaled(o, tau)).collect();
         let edge = scaled[0];
         let body = scaled[1..scaled.len() - 1].to_vec();
+        let alternating = alternating_shape(&body);
         TangentMap {
+            alternating,
             ham,
             tau,
             ops,
@@ -311,12 +330,61 @@ impl<'h, H> TangentMap<'h, H> {
     ) where
         H: Hamiltonian<N>,
     {
-        self.apply_edge(x, inc);
+        // Work on a local copy: with the body unrolled below, the whole step stays in
+        // registers instead of loading and storing the state around every sub-map.
+        let mut s = *x;
+        self.apply_edge(&mut s, inc);
+        match &self.alternating {
+            Some((true, c)) => match c.len() {
+                1 => self.body_unrolled::<T, N, K, 1, true>(&mut s, c),
+                3 => self.body_unrolled::<T, N, K, 3, true>(&mut s, c),
+                5 => self.body_unrolled::<T, N, K, 5, true>(&mut s, c),
+                7 => self.body_unrolled::<T, N, K, 7, true>(&mut s, c),
+                9 => self.body_unrolled::<T, N, K, 9, true>(&mut s, c),
+                _ => self.body_in_turn(&mut s),
+            },
+            Some((false, c)) => match c.len() {
+                1 => self.body_unrolled::<T, N, K, 1, false>(&mut s, c),
+                3 => self.body_unrolled::<T, N, K, 3, false>(&mut s, c),
+                5 => self.body_unrolled::<T, N, K, 5, false>(&mut s, c),
+                7 => self.body_unrolled::<T, N, K, 7, false>(&mut s, c),
+                _ => self.body_in_turn(&mut s),
+            },
+            None => self.body_in_turn(&mut s),
+        }
+        *inc = self.edge_increment(&s);
+        self.apply_edge(&mut s, inc);
+        *x = s;
+    }
+
+    #[inline(always)]
+    fn body_in_turn<T: Real, const N: usize, const K: usize>(&self, x: &mut Phase<T, N, K>)
+    where
+        H: Hamiltonian<N>,
+    {
         for &op in &self.body {
             apply(self.ham, x, op);
         }
-        *inc = self.edge_increment(x);
-        self.apply_edge(x, inc);
+    }
+
+    /// The body with its length and drift/kick pattern known at compile time, so it unrolls
+    /// into straight-line code (same operations as [`Self::body_in_turn`]).
+    #[inline(always)]
+    fn body_unrolled<T: Real, const N: usize, const K: usize, const M: usize, const DRIFT_FIRST: bool>(
+        &self,
+        x: &mut Phase<T, N, K>,
+        coeffs: &[f64],
+    ) where
+        H: Hamiltonian<N>,
+    {
+        let c: &[f64; M] = coeffs.try_into().expect("body length");
+        for (i, &ci) in c.iter().enumerate() {
+            if (i % 2 == 0) == DRIFT_FIRST {
+                apply(self.ham, x, SubMap::Drift(ci));
+            } else {
+                apply(self.ham, x, SubMap::Kick(ci));
+            }
+        }
     }
 }
 
