@@ -370,7 +370,13 @@ impl<'h, H> TangentMap<'h, H> {
     /// The body with its length and drift/kick pattern known at compile time, so it unrolls
     /// into straight-line code (same operations as [`Self::body_in_turn`]).
     #[inline(always)]
-    fn body_unrolled<T: Real, const N: usize, const K: usize, const M: usize, const DRIFT_FIRST: bool>(
+    fn body_unrolled<
+        T: Real,
+        const N: usize,
+        const K: usize,
+        const M: usize,
+        const DRIFT_FIRST: bool,
+    >(
         &self,
         x: &mut Phase<T, N, K>,
         coeffs: &[f64],

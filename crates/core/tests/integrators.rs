@@ -248,3 +248,90 @@ fn time_is_exact_after_many_steps() {
     assert_eq!(res.steps, 1_000_000);
     assert_eq!(res.t_reached, 1e5);
 }
+
+/// An anisotropic 3-D harmonic oscillator, V = ½ Σ ω_i² q_i²: nothing in the integrators may
+/// assume Hénon–Heiles or two degrees of freedom, and this system has an exact solution.
+struct Oscillator3 {
+    omega: [f64; 3],
+}
+
+impl Hamiltonian<3> for Oscillator3 {
+    fn name(&self) -> &'static str {
+        "oscillator-3"
+    }
+    fn potential<T: salient_core::real::Real>(&self, q: &[T; 3]) -> T {
+        let mut v = T::splat(0.0);
+        for i in 0..3 {
+            v += T::splat(0.5 * self.omega[i] * self.omega[i]) * q[i] * q[i];
+        }
+        v
+    }
+    fn grad<T: salient_core::real::Real>(&self, q: &[T; 3]) -> [T; 3] {
+        core::array::from_fn(|i| T::splat(self.omega[i] * self.omega[i]) * q[i])
+    }
+    fn hess_vec<T: salient_core::real::Real>(&self, _q: &[T; 3], u: &[T; 3]) -> [T; 3] {
+        core::array::from_fn(|i| T::splat(self.omega[i] * self.omega[i]) * u[i])
+    }
+    fn third_vec<T: salient_core::real::Real>(
+        &self,
+        _q: &[T; 3],
+        _w: &[T; 3],
+        _u: &[T; 3],
+    ) -> [T; 3] {
+        [T::splat(0.0); 3]
+    }
+}
+
+#[test]
+fn integrators_are_generic_in_the_number_of_degrees_of_freedom() {
+    let ham = Oscillator3 {
+        omega: [1.0, 2f64.sqrt(), 0.7],
+    };
+    let (q0, p0) = ([0.3, -0.2, 0.5], [0.1, 0.4, -0.3]);
+    let exact = |t: f64| -> ([f64; 3], [f64; 3]) {
+        let mut q = [0.0; 3];
+        let mut p = [0.0; 3];
+        for i in 0..3 {
+            let w = ham.omega[i];
+            q[i] = q0[i] * (w * t).cos() + p0[i] / w * (w * t).sin();
+            p[i] = -q0[i] * w * (w * t).sin() + p0[i] * (w * t).cos();
+        }
+        (q, p)
+    };
+    let err = |scheme: &Scheme, tau: f64| {
+        let map = TangentMap::new(&ham, scheme, tau);
+        let mut s = Stepping::new(
+            &map,
+            Phase::<f64, 3, 2> {
+                q: q0,
+                p: p0,
+                dq: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+                dp: [[0.0; 3]; 2],
+            },
+        );
+        for _ in 0..(10.0 / tau).round() as u64 {
+            s.advance();
+        }
+        let (q, p) = exact(10.0);
+        // For a linear system the tangent map is the map itself: δq of the first vector is the
+        // solution started from (e1, 0).
+        let dq_exact = (10.0 * ham.omega[0]).cos();
+        (0..3)
+            .map(|i| (s.x.q[i] - q[i]).abs().max((s.x.p[i] - p[i]).abs()))
+            .fold((s.x.dq[0][0] - dq_exact).abs(), f64::max)
+    };
+    for (name, order) in [
+        ("sbab2c", 4.0),
+        ("saba3c", 4.0),
+        ("srkn14a", 6.0),
+        ("sbab3", 2.0),
+    ] {
+        let scheme = Scheme::by_name(name).unwrap();
+        let tau = if order == 6.0 { 0.3125 } else { 0.1 };
+        let observed = (err(&scheme, tau) / err(&scheme, tau / 2.0)).log2();
+        assert!(
+            (observed - order).abs() < 0.25,
+            "{name} on a 3-D oscillator: order {observed:.3}"
+        );
+    }
+}
