@@ -9,7 +9,9 @@
 // Index loops over phase-space components mirror the formulas they implement.
 #![allow(clippy::needless_range_loop)]
 
+pub mod adaptive;
 pub mod batch;
+pub mod dop853;
 pub mod hamiltonian;
 pub mod indicators;
 pub mod method;

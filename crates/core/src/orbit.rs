@@ -230,7 +230,7 @@ pub fn initial_vectors<const N: usize, const K: usize>(
 }
 
 /// Steps at which samples are recorded: ~`per_decade` log-spaced per decade, and the last.
-fn sample_steps(per_decade: u32, n_final: u64) -> Vec<u64> {
+pub(crate) fn sample_steps(per_decade: u32, n_final: u64) -> Vec<u64> {
     let mut v = Vec::new();
     if per_decade == 0 {
         return v;

@@ -33,6 +33,66 @@ impl<T: Real, const N: usize, const K: usize> Phase<T, N, K> {
     }
 }
 
+/// Component-wise arithmetic on a phase point as one vector of 2N(K + 1) numbers, for the
+/// general-purpose integrators (DOP853, Taylor).
+impl<const N: usize, const K: usize> Phase<f64, N, K> {
+    /// self += a·x.
+    #[inline(always)]
+    pub fn axpy(&mut self, a: f64, x: &Self) {
+        self.zip_mut(x, |s, v| *s = v.mul_add(a, *s));
+    }
+
+    /// self *= a.
+    #[inline(always)]
+    pub fn scale(&mut self, a: f64) {
+        let copy = *self;
+        self.zip_mut(&copy, |s, _| *s *= a);
+    }
+
+    /// Calls `f(self_i, x_i)` on every component pair, mutably.
+    #[inline(always)]
+    pub fn zip_mut(&mut self, x: &Self, mut f: impl FnMut(&mut f64, f64)) {
+        for i in 0..N {
+            f(&mut self.q[i], x.q[i]);
+            f(&mut self.p[i], x.p[i]);
+        }
+        for k in 0..K {
+            for i in 0..N {
+                f(&mut self.dq[k][i], x.dq[k][i]);
+                f(&mut self.dp[k][i], x.dp[k][i]);
+            }
+        }
+    }
+
+    /// Calls `f(self_i, x_i)` on every component pair.
+    #[inline(always)]
+    pub fn zip_for_each(&self, x: &Self, mut f: impl FnMut(f64, f64)) {
+        let mut me = *self;
+        me.zip_mut(x, |s, v| f(*s, v));
+    }
+
+    /// Calls `f(self_i, a_i, b_i, c_i)` on every component.
+    #[inline(always)]
+    pub fn zip3_for_each(
+        &self,
+        a: &Self,
+        b: &Self,
+        c: &Self,
+        mut f: impl FnMut(f64, f64, f64, f64),
+    ) {
+        for i in 0..N {
+            f(self.q[i], a.q[i], b.q[i], c.q[i]);
+            f(self.p[i], a.p[i], b.p[i], c.p[i]);
+        }
+        for k in 0..K {
+            for i in 0..N {
+                f(self.dq[k][i], a.dq[k][i], b.dq[k][i], c.dq[k][i]);
+                f(self.dp[k][i], a.dp[k][i], b.dp[k][i], c.dp[k][i]);
+            }
+        }
+    }
+}
+
 /// A sub-map with its coefficients already multiplied by the step (aτ, bτ, γτ³).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) enum SubMap {

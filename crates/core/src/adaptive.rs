@@ -1,0 +1,369 @@
+//! The one-orbit driver for adaptive integrators (DOP853; Taylor to come), in the two protocols:
+//!
+//! - `restart` (the seed paper's): integrate exactly to every multiple of τ, compute the
+//!   indicators there, renormalise the deviation vectors to unit length and carry the predicted
+//!   step over;
+//! - `free`: natural steps; renormalise at step ends; indicators at the multiples of τ come from
+//!   the step's dense output.
+//!
+//! Both give the same SALI in exact arithmetic (the variational equations are linear, so the
+//! renormalisation only rescales). Deviation vectors are renormalised to unit length here, not
+//! by powers of two as in the tangent-map driver, because the error control weighs components
+//! by their size.
+
+use crate::dop853::{Dense, Dop853, StepFailure};
+use crate::hamiltonian::Hamiltonian;
+use crate::indicators::{gali, norm2, sali};
+use crate::orbit::{
+    sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Sample, Status,
+};
+use crate::real::dot;
+use crate::section::Crossing;
+use crate::tangent::Phase;
+
+/// How an adaptive method meets the renormalisation times.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Protocol {
+    /// Stop exactly at every multiple of τ (the paper's protocol).
+    #[default]
+    Restart,
+    /// Natural steps; sample at multiples of τ through dense output.
+    Free,
+}
+
+impl Protocol {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Protocol::Restart => "restart",
+            Protocol::Free => "free",
+        }
+    }
+}
+
+/// An adaptive integrator of the orbit and its deviation vectors.
+pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
+    fn t(&self) -> f64;
+    fn state(&self) -> &Phase<f64, N, K>;
+    fn state_mut(&mut self) -> &mut Phase<f64, N, K>;
+    /// Must be called after the state was changed through [`Self::state_mut`].
+    fn state_changed(&mut self);
+    /// One accepted step ending at or before `t_end` (exactly at it when within reach); with
+    /// `dense`, the step's interpolant becomes available through [`Self::interpolate`].
+    fn step(&mut self, t_end: f64, dense: bool) -> Result<(), StepFailure>;
+    /// The state at `t` within the last step (only after a step taken with `dense`).
+    fn interpolate(&self, t: f64) -> Phase<f64, N, K>;
+    /// Start of the last step.
+    fn t_prev(&self) -> f64;
+    /// Accepted steps so far.
+    fn steps(&self) -> u64;
+}
+
+/// DOP853 with the dense output of its last step.
+pub struct Dop853Orbit<'h, H, const N: usize, const K: usize> {
+    pub inner: Dop853<'h, H, N, K>,
+    dense: Dense<N, K>,
+    t_prev: f64,
+}
+
+impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853Orbit<'h, H, N, K> {
+    pub fn new(inner: Dop853<'h, H, N, K>) -> Self {
+        let t = inner.t;
+        Dop853Orbit {
+            dense: Dense::empty(),
+            inner,
+            t_prev: t,
+        }
+    }
+}
+
+impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
+    for Dop853Orbit<'_, H, N, K>
+{
+    fn t(&self) -> f64 {
+        self.inner.t
+    }
+    fn state(&self) -> &Phase<f64, N, K> {
+        &self.inner.y
+    }
+    fn state_mut(&mut self) -> &mut Phase<f64, N, K> {
+        &mut self.inner.y
+    }
+    fn state_changed(&mut self) {
+        self.inner.state_changed();
+    }
+    fn step(&mut self, t_end: f64, dense: bool) -> Result<(), StepFailure> {
+        self.t_prev = self.inner.t;
+        self.inner
+            .step(t_end, if dense { Some(&mut self.dense) } else { None })
+    }
+    fn interpolate(&self, t: f64) -> Phase<f64, N, K> {
+        self.dense.at(t)
+    }
+    fn t_prev(&self) -> f64 {
+        self.t_prev
+    }
+    fn steps(&self) -> u64 {
+        self.inner.accepted
+    }
+}
+
+/// Bookkeeping at the multiples of τ and at step ends.
+struct Books<'a, H, const K: usize> {
+    ham: &'a H,
+    config: &'a OrbitConfig,
+    requests: &'a Requests,
+    h0: f64,
+    h_scale: f64,
+    r2_max: f64,
+    /// Σ ln of the renormalisation factors of the first vector.
+    ln_growth: f64,
+    energy_max: f64,
+    samples: Vec<u64>,
+    next_sample: usize,
+}
+
+impl<H, const K: usize> Books<'_, H, K> {
+    fn energy_error<const N: usize>(&self, y: &Phase<f64, N, K>) -> f64
+    where
+        H: Hamiltonian<N>,
+    {
+        (self.ham.energy(&y.q, &y.p) - self.h0).abs() / self.h_scale
+    }
+
+    fn mle<const N: usize>(&self, y: &Phase<f64, N, K>, t: f64) -> f64 {
+        if t > 0.0 {
+            (self.ln_growth + 0.5 * norm2(&y.dq[0], &y.dp[0]).ln()) / t
+        } else {
+            0.0
+        }
+    }
+
+    /// At t = nτ: samples and the early stop. Returns true when the orbit stops.
+    fn at_tau<const N: usize>(
+        &mut self,
+        n: u64,
+        y: &Phase<f64, N, K>,
+        out: &mut OrbitResult<N>,
+    ) -> bool
+    where
+        H: Hamiltonian<N>,
+    {
+        let t = n as f64 * self.config.tau;
+        if self.next_sample < self.samples.len() && self.samples[self.next_sample] == n {
+            self.next_sample += 1;
+            out.series.push(Sample {
+                t,
+                sali: sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1])),
+                gali: if self.requests.gali {
+                    gali(&y.dq, &y.dp)
+                } else {
+                    Vec::new()
+                },
+                mle: self.mle(y, t),
+                energy_error: self.energy_error(y),
+            });
+        }
+        let th = self.config.thresholds;
+        th.early_stop && sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1])) < th.chaotic
+    }
+
+    /// At a step end: escape, non-finite, energy. Returns the status that stops the orbit.
+    fn at_step_end<const N: usize>(&mut self, y: &Phase<f64, N, K>) -> Option<Status>
+    where
+        H: Hamiltonian<N>,
+    {
+        let r2 = dot(&y.q, &y.q);
+        if r2.is_nan()
+            || (0..K).any(|k| !norm2(&y.dq[k], &y.dp[k]).is_finite())
+            || !dot(&y.p, &y.p).is_finite()
+        {
+            return Some(Status::NonFinite);
+        }
+        if r2 > self.r2_max {
+            return Some(Status::Escaped);
+        }
+        if self.requests.energy {
+            self.energy_max = self.energy_max.max(self.energy_error(y));
+        }
+        None
+    }
+
+    /// Renormalises every deviation vector to unit length, recording the first one's factor.
+    fn renormalise<const N: usize>(&mut self, y: &mut Phase<f64, N, K>) {
+        for k in 0..K {
+            let n = norm2(&y.dq[k], &y.dp[k]).sqrt();
+            if k == 0 {
+                self.ln_growth += n.ln();
+            }
+            let s = 1.0 / n;
+            for i in 0..N {
+                y.dq[k][i] *= s;
+                y.dp[k][i] *= s;
+            }
+        }
+    }
+}
+
+/// Locates an upward crossing of q1 = 0 inside the last step from its dense output: Newton
+/// with dq1/dt = p1, kept inside a bisection bracket.
+fn locate_dense<I: AdaptiveIntegrator<N, K>, const N: usize, const K: usize>(
+    integ: &I,
+) -> Crossing<N> {
+    let (mut lo, mut hi) = (integ.t_prev(), integ.t());
+    let mut t = 0.5 * (lo + hi);
+    let mut y = integ.interpolate(t);
+    for _ in 0..100 {
+        let f = y.q[0];
+        if f == 0.0 {
+            break;
+        }
+        if f < 0.0 {
+            lo = t;
+        } else {
+            hi = t;
+        }
+        let newton = t - f / y.p[0];
+        let next = if y.p[0] > 0.0 && newton > lo && newton < hi {
+            newton
+        } else {
+            0.5 * (lo + hi)
+        };
+        let done = (next - t).abs() <= 4.0 * f64::EPSILON * hi.abs().max(1.0)
+            || hi - lo <= 4.0 * f64::EPSILON * hi.abs();
+        t = next;
+        y = integ.interpolate(t);
+        if done {
+            break;
+        }
+    }
+    Crossing { t, q: y.q, p: y.p }
+}
+
+/// Integrates the orbit held by `integ` (deviation vectors already set) to `config.t_final`.
+pub fn integrate_adaptive<H, I, const N: usize, const K: usize>(
+    ham: &H,
+    integ: &mut I,
+    protocol: Protocol,
+    config: &OrbitConfig,
+    requests: &Requests,
+) -> OrbitResult<N>
+where
+    H: Hamiltonian<N>,
+    I: AdaptiveIntegrator<N, K>,
+{
+    assert!(K >= 2, "SALI needs two deviation vectors");
+    let y0 = *integ.state();
+    let h0 = ham.energy(&y0.q, &y0.p);
+    let tau = config.tau;
+    let n_final = steps_to(config.t_final, tau);
+    let radius = config.escape_radius.unwrap_or_else(|| ham.escape_radius());
+    let mut books: Books<'_, H, K> = Books {
+        ham,
+        config,
+        requests,
+        h0,
+        h_scale: if h0.abs() > 1e-300 { h0.abs() } else { 1.0 },
+        r2_max: radius * radius,
+        ln_growth: 0.0,
+        energy_max: 0.0,
+        samples: sample_steps(requests.samples_per_decade, n_final),
+        next_sample: 0,
+    };
+    let mut out = OrbitResult::empty();
+    let mut status = Status::Ok;
+    let mut n = 0u64;
+    // The time the indicators refer to at the end.
+    let mut t_end_state = 0.0;
+    let mut end_state = y0;
+    let want_dense = requests.crossings || protocol == Protocol::Free;
+
+    'outer: while n < n_final {
+        let target = match protocol {
+            Protocol::Restart => (n + 1) as f64 * tau,
+            Protocol::Free => n_final as f64 * tau,
+        };
+        let q1_before = integ.state().q[0];
+        if let Err(e) = integ.step(target, want_dense) {
+            status = match e {
+                StepFailure::StepTooSmall { .. } => Status::StepLimit,
+                StepFailure::NonFinite { .. } => Status::NonFinite,
+            };
+            break;
+        }
+        if let Some(s) = books.at_step_end(integ.state()) {
+            status = s;
+            break;
+        }
+        if requests.crossings && q1_before < 0.0 && integ.state().q[0] >= 0.0 {
+            out.crossings.push(locate_dense(integ));
+        }
+        match protocol {
+            Protocol::Restart => {
+                if integ.t() < target {
+                    continue;
+                }
+                n += 1;
+                let y = *integ.state();
+                t_end_state = n as f64 * tau;
+                end_state = y;
+                if books.at_tau(n, &y, &mut out) {
+                    status = Status::ChaoticEarlyStop;
+                    break;
+                }
+            }
+            Protocol::Free => {
+                // Every multiple of τ inside this step, through the dense output.
+                while n < n_final && (n + 1) as f64 * tau <= integ.t() {
+                    n += 1;
+                    let t = n as f64 * tau;
+                    let y = if t == integ.t() {
+                        *integ.state()
+                    } else {
+                        integ.interpolate(t)
+                    };
+                    t_end_state = t;
+                    end_state = y;
+                    if books.at_tau(n, &y, &mut out) {
+                        status = Status::ChaoticEarlyStop;
+                        break 'outer;
+                    }
+                }
+            }
+        }
+        if n < n_final {
+            let mut y = *integ.state();
+            books.renormalise(&mut y);
+            *integ.state_mut() = y;
+            integ.state_changed();
+        }
+    }
+
+    out.status = status;
+    out.steps = integ.steps();
+    out.energy_error_max = requests.energy.then_some(books.energy_max);
+    if matches!(status, Status::Ok | Status::ChaoticEarlyStop) {
+        // The end state was taken before any later renormalisation (none happens once n
+        // reaches n_final or the orbit stops), so its scale matches `ln_growth`.
+        let y = end_state;
+        out.t_reached = t_end_state;
+        out.sali = sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1]));
+        out.mle = books.mle(&y, t_end_state);
+        out.gali = if requests.gali {
+            gali(&y.dq, &y.dp)
+        } else {
+            Vec::new()
+        };
+        out.class = Some(if status == Status::ChaoticEarlyStop {
+            Class::Chaotic
+        } else {
+            config.thresholds.classify(out.sali)
+        });
+    } else {
+        out.t_reached = integ.t();
+        out.sali = f64::NAN;
+        out.mle = f64::NAN;
+        out.class = None;
+    }
+    out
+}
