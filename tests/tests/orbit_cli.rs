@@ -209,3 +209,60 @@ fn bad_flags_exit_2_with_one_line_naming_the_flag_and_write_nothing() {
         "{stderr}"
     );
 }
+
+#[test]
+fn dop853_runs_in_both_protocols_and_clamps_delta_with_a_warning() {
+    let base = [
+        "orbit",
+        "--q2",
+        "0.558",
+        "--p2",
+        "0",
+        "--method",
+        "dop853",
+        "--t-final",
+        "1e3",
+        "--json",
+    ];
+    let mut sali = Vec::new();
+    for protocol in ["restart", "free"] {
+        let mut args = base.to_vec();
+        args.extend_from_slice(&["--delta", "1e-12", "--protocol", protocol]);
+        let v = json_stdout(&salient(&args));
+        assert_eq!(v["method"], "dop853");
+        assert_eq!(v["protocol"], protocol);
+        assert_eq!(v["delta"], 1e-12);
+        assert_eq!(v["class"], "regular");
+        assert_eq!(v["warnings"].as_array().unwrap().len(), 0);
+        sali.push(v["sali"].as_f64().unwrap());
+    }
+    // heyoka (tol 1e-15) gives SALI(1e3) = 1.2535960837 for R1 with the same deviation vectors.
+    for s in &sali {
+        assert!((s - 1.253_596_083_7).abs() < 1e-8, "SALI(1e3) = {s}");
+    }
+    let mut args = base.to_vec();
+    args.extend_from_slice(&["--delta", "1e-16"]);
+    let v = json_stdout(&salient(&args));
+    assert_eq!(v["delta"], 1e-14);
+    assert!(v["warnings"][0].as_str().unwrap().contains("1e-16"));
+    // A tangent-map method says that it ignores --delta.
+    let v = json_stdout(&salient(&[
+        "orbit",
+        "--q2",
+        "0.558",
+        "--p2",
+        "0",
+        "--method",
+        "tm-sbab2c",
+        "--t-final",
+        "10",
+        "--delta",
+        "1e-8",
+        "--json",
+    ]));
+    assert_eq!(v["delta"], serde_json::Value::Null);
+    assert!(v["warnings"][0]
+        .as_str()
+        .unwrap()
+        .contains("--delta is ignored"));
+}

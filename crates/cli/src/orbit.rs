@@ -2,8 +2,13 @@
 
 use crate::usage::{finite, positive, runtime, CliError, CliResult};
 use clap::{Args, ValueEnum};
-use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests, Thresholds};
+use salient_core::adaptive::{integrate_adaptive, Dop853Orbit, Protocol as AdaptiveProtocol};
+use salient_core::dop853::{Dop853, Dop853Config};
+use salient_core::orbit::{
+    initial_vectors, integrate, OrbitConfig, OrbitResult, Requests, Thresholds,
+};
 use salient_core::section::on_section;
+use salient_core::tangent::Phase;
 use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method, TangentMap};
 use salient_report::{render_loglog_png, HLine, Line, LogLogPlot, ReportError};
 use serde_json::{json, Map, Value};
@@ -13,6 +18,9 @@ use std::time::Instant;
 
 /// Refuse runs beyond this many steps: a typo in --t-final should not start a year-long job.
 const MAX_STEPS: f64 = 1e12;
+
+/// Tolerance of the adaptive methods when --delta is not given.
+const DEFAULT_DELTA: f64 = 1e-10;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum Protocol {
@@ -41,11 +49,11 @@ pub struct OrbitArgs {
     /// Integration method, e.g. tm-sbab2c, tm-srkn14a.
     #[arg(long)]
     method: String,
-    /// Step τ of the tangent-map methods; deviation vectors are renormalised and SALI checked
-    /// every τ.
+    /// Renormalisation interval τ: deviation vectors are renormalised and SALI checked every τ;
+    /// for tm-* methods it is also the integration step.
     #[arg(long, default_value_t = 0.05)]
     tau: f64,
-    /// Tolerance of the adaptive methods (ignored by tm-* methods).
+    /// Tolerance δ of the adaptive methods, rtol = atol = δ (default 1e-10; ignored by tm-*).
     #[arg(long)]
     delta: Option<f64>,
     /// Protocol of the adaptive methods (ignored by tm-* methods).
@@ -86,6 +94,9 @@ pub struct OrbitArgs {
 /// A validated orbit request.
 struct OrbitJob {
     method: Method,
+    /// The tolerance in force (adaptive methods only).
+    delta: Option<f64>,
+    protocol: AdaptiveProtocol,
     q: [f64; 2],
     p: [f64; 2],
     config: OrbitConfig,
@@ -115,17 +126,30 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
     let mut warnings = Vec::new();
     if let Some(d) = a.delta {
         positive("--delta", d)?;
-        warnings.push(format!(
-            "--delta is ignored by {}: its accuracy is set by --tau",
-            method.name()
-        ));
     }
-    if a.protocol.is_some() {
-        warnings.push(format!(
-            "--protocol is ignored by {}: it steps exactly to every τ",
-            method.name()
-        ));
+    let mut delta = None;
+    if method.is_adaptive() {
+        let (d, warning) = method.honoured_delta(a.delta.unwrap_or(DEFAULT_DELTA));
+        delta = Some(d);
+        warnings.extend(warning);
+    } else {
+        if a.delta.is_some() {
+            warnings.push(format!(
+                "--delta is ignored by {}: its accuracy is set by --tau",
+                method.name()
+            ));
+        }
+        if a.protocol.is_some() {
+            warnings.push(format!(
+                "--protocol is ignored by {}: it steps exactly to every τ",
+                method.name()
+            ));
+        }
     }
+    let protocol = match a.protocol.unwrap_or(Protocol::Restart) {
+        Protocol::Restart => AdaptiveProtocol::Restart,
+        Protocol::Free => AdaptiveProtocol::Free,
+    };
     let regular = positive("--regular", a.regular)?;
     let chaotic = positive("--chaotic", a.chaotic)?;
     if !(chaotic <= regular && regular <= 2f64.sqrt()) {
@@ -173,6 +197,8 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
     };
     Ok(OrbitJob {
         method,
+        delta,
+        protocol,
         q,
         p,
         config,
@@ -184,14 +210,11 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
 
 pub fn run(args: OrbitArgs) -> CliResult<()> {
     let job = validate(&args)?;
-    let ham = HenonHeiles;
-    let Method::TangentMap(scheme) = &job.method;
-    let map = TangentMap::new(&ham, scheme, job.config.tau);
     let start = Instant::now();
     let result: OrbitResult<2> = if job.gali_all {
-        integrate::<_, 2, 4>(&map, job.q, job.p, &job.config, &job.requests)
+        integrate_job::<4>(&job)
     } else {
-        integrate::<_, 2, 2>(&map, job.q, job.p, &job.config, &job.requests)
+        integrate_job::<2>(&job)
     };
     let wall = start.elapsed().as_secs_f64();
     let mut summary = summary_json(&job, &result, wall);
@@ -214,6 +237,30 @@ pub fn run(args: OrbitArgs) -> CliResult<()> {
     Ok(())
 }
 
+/// Runs the job's method with `K` deviation vectors.
+fn integrate_job<const K: usize>(job: &OrbitJob) -> OrbitResult<2> {
+    let ham = HenonHeiles;
+    match &job.method {
+        Method::TangentMap(scheme) => {
+            let map = TangentMap::new(&ham, scheme, job.config.tau);
+            integrate::<_, 2, K>(&map, job.q, job.p, &job.config, &job.requests)
+        }
+        Method::Dop853 => {
+            let (dq, dp) = initial_vectors::<2, K>(job.config.deviation);
+            let y = Phase {
+                q: job.q,
+                p: job.p,
+                dq,
+                dp,
+            };
+            let delta = job.delta.expect("adaptive methods carry a tolerance");
+            let mut integ =
+                Dop853Orbit::new(Dop853::new(&ham, Dop853Config::with_delta(delta), 0.0, y));
+            integrate_adaptive(&ham, &mut integ, job.protocol, &job.config, &job.requests)
+        }
+    }
+}
+
 fn summary_json(job: &OrbitJob, r: &OrbitResult<2>, wall: f64) -> Value {
     let mut gali = Map::new();
     for (i, g) in r.gali.iter().enumerate() {
@@ -222,7 +269,8 @@ fn summary_json(job: &OrbitJob, r: &OrbitResult<2>, wall: f64) -> Value {
     json!({
         "method": job.method.name(),
         "tau": job.config.tau,
-        "delta": Value::Null,
+        "delta": job.delta,
+        "protocol": job.method.is_adaptive().then(|| job.protocol.as_str()),
         "t_final": job.config.t_final,
         "t_reached": r.t_reached,
         "status": r.status.as_str(),

@@ -7,6 +7,9 @@
 //! the code is this project's. The stiffness test of Hairer's code is omitted: Hamiltonian
 //! systems like these are not stiff, and the test would only cost evaluations.
 
+// Coefficients keep the digits their sources publish; f64 rounds them once.
+#![allow(clippy::excessive_precision)]
+
 use crate::hamiltonian::Hamiltonian;
 use crate::tangent::Phase;
 
