@@ -20,6 +20,7 @@ use crate::orbit::{
 use crate::real::dot;
 use crate::section::Crossing;
 use crate::tangent::Phase;
+use crate::taylor::{Scalar, Taylor, TaylorSeries};
 
 /// How an adaptive method meets the renormalisation times.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -44,10 +45,11 @@ impl Protocol {
 /// An adaptive integrator of the orbit and its deviation vectors.
 pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     fn t(&self) -> f64;
-    fn state(&self) -> &Phase<f64, N, K>;
-    fn state_mut(&mut self) -> &mut Phase<f64, N, K>;
-    /// Must be called after the state was changed through [`Self::state_mut`].
-    fn state_changed(&mut self);
+    /// The current state, rounded to f64.
+    fn state(&self) -> Phase<f64, N, K>;
+    /// Scales every deviation vector to unit length (in the integrator's own precision) and
+    /// returns ln of the factor removed from the first one.
+    fn renormalise(&mut self) -> f64;
     /// One accepted step ending at or before `t_end` (exactly at it when within reach); with
     /// `dense`, the step's interpolant becomes available through [`Self::interpolate`].
     fn step(&mut self, t_end: f64, dense: bool) -> Result<(), StepFailure>;
@@ -83,14 +85,13 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
     fn t(&self) -> f64 {
         self.inner.t
     }
-    fn state(&self) -> &Phase<f64, N, K> {
-        &self.inner.y
+    fn state(&self) -> Phase<f64, N, K> {
+        self.inner.y
     }
-    fn state_mut(&mut self) -> &mut Phase<f64, N, K> {
-        &mut self.inner.y
-    }
-    fn state_changed(&mut self) {
+    fn renormalise(&mut self) -> f64 {
+        let ln = unit_vectors(&mut self.inner.y);
         self.inner.state_changed();
+        ln
     }
     fn step(&mut self, t_end: f64, dense: bool) -> Result<(), StepFailure> {
         self.t_prev = self.inner.t;
@@ -105,6 +106,72 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
     }
     fn steps(&self) -> u64 {
         self.inner.accepted
+    }
+}
+
+/// Scales the deviation vectors of `y` to unit length (the factors rounded to f64, then applied
+/// in `T`'s precision); returns ln of the factor removed from the first.
+pub fn unit_vectors<T: Scalar, const N: usize, const K: usize>(y: &mut Phase<T, N, K>) -> f64 {
+    let mut ln0 = 0.0;
+    for k in 0..K {
+        let n2: f64 = y.dq[k]
+            .iter()
+            .chain(&y.dp[k])
+            .map(|x| x.to_f64() * x.to_f64())
+            .sum();
+        let s = 1.0 / n2.sqrt();
+        if k == 0 {
+            ln0 = -s.ln();
+        }
+        let st = T::splat(s);
+        for i in 0..N {
+            y.dq[k][i] = y.dq[k][i] * st;
+            y.dp[k][i] = y.dp[k][i] * st;
+        }
+    }
+    ln0
+}
+
+/// The Taylor method as an adaptive integrator; the step's polynomial is the dense output.
+pub struct TaylorOrbit<'h, H, T, const N: usize, const K: usize> {
+    pub inner: Taylor<'h, H, T, N, K>,
+}
+
+impl<H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
+    for TaylorOrbit<'_, H, T, N, K>
+{
+    fn t(&self) -> f64 {
+        self.inner.t()
+    }
+    fn state(&self) -> Phase<f64, N, K> {
+        to_f64_phase(&self.inner.y)
+    }
+    fn renormalise(&mut self) -> f64 {
+        unit_vectors(&mut self.inner.y)
+    }
+    fn step(&mut self, t_end: f64, _dense: bool) -> Result<(), StepFailure> {
+        self.inner.step(t_end)
+    }
+    fn interpolate(&self, t: f64) -> Phase<f64, N, K> {
+        to_f64_phase(&self.inner.interpolate(t))
+    }
+    fn t_prev(&self) -> f64 {
+        self.inner.t_prev()
+    }
+    fn steps(&self) -> u64 {
+        self.inner.steps
+    }
+}
+
+/// A phase point rounded to f64.
+pub fn to_f64_phase<T: Scalar, const N: usize, const K: usize>(
+    y: &Phase<T, N, K>,
+) -> Phase<f64, N, K> {
+    Phase {
+        q: y.q.map(Scalar::to_f64),
+        p: y.p.map(Scalar::to_f64),
+        dq: y.dq.map(|v| v.map(Scalar::to_f64)),
+        dp: y.dp.map(|v| v.map(Scalar::to_f64)),
     }
 }
 
@@ -188,21 +255,6 @@ impl<H, const K: usize> Books<'_, H, K> {
         }
         None
     }
-
-    /// Renormalises every deviation vector to unit length, recording the first one's factor.
-    fn renormalise<const N: usize>(&mut self, y: &mut Phase<f64, N, K>) {
-        for k in 0..K {
-            let n = norm2(&y.dq[k], &y.dp[k]).sqrt();
-            if k == 0 {
-                self.ln_growth += n.ln();
-            }
-            let s = 1.0 / n;
-            for i in 0..N {
-                y.dq[k][i] *= s;
-                y.dp[k][i] *= s;
-            }
-        }
-    }
 }
 
 /// Locates an upward crossing of q1 = 0 inside the last step from its dense output: Newton
@@ -253,7 +305,7 @@ where
     I: AdaptiveIntegrator<N, K>,
 {
     assert!(K >= 2, "SALI needs two deviation vectors");
-    let y0 = *integ.state();
+    let y0 = integ.state();
     let h0 = ham.energy(&y0.q, &y0.p);
     let tau = config.tau;
     let n_final = steps_to(config.t_final, tau);
@@ -291,7 +343,7 @@ where
             };
             break;
         }
-        if let Some(s) = books.at_step_end(integ.state()) {
+        if let Some(s) = books.at_step_end(&integ.state()) {
             status = s;
             break;
         }
@@ -304,7 +356,7 @@ where
                     continue;
                 }
                 n += 1;
-                let y = *integ.state();
+                let y = integ.state();
                 t_end_state = n as f64 * tau;
                 end_state = y;
                 if books.at_tau(n, &y, &mut out) {
@@ -318,7 +370,7 @@ where
                     n += 1;
                     let t = n as f64 * tau;
                     let y = if t == integ.t() {
-                        *integ.state()
+                        integ.state()
                     } else {
                         integ.interpolate(t)
                     };
@@ -332,10 +384,7 @@ where
             }
         }
         if n < n_final {
-            let mut y = *integ.state();
-            books.renormalise(&mut y);
-            *integ.state_mut() = y;
-            integ.state_changed();
+            books.ln_growth += integ.renormalise();
         }
     }
 

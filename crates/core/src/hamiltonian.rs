@@ -99,7 +99,7 @@ impl Hamiltonian<2> for HenonHeiles {
     fn potential<T: Real>(&self, q: &[T; 2]) -> T {
         let [x, y] = *q;
         let half = T::splat(0.5);
-        half * (x * x + y * y) + x * x * y - y * y * y * T::splat(1.0 / 3.0)
+        half * (x * x + y * y) + x * x * y - y * y * y * T::ratio(1.0, 3.0)
     }
 
     #[inline(always)]

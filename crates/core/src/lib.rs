@@ -11,6 +11,7 @@
 
 pub mod adaptive;
 pub mod batch;
+pub mod dd;
 pub mod dop853;
 pub mod hamiltonian;
 pub mod indicators;
@@ -20,6 +21,7 @@ pub mod real;
 pub mod scheme;
 pub mod section;
 pub mod tangent;
+pub mod taylor;
 
 pub use hamiltonian::{Hamiltonian, HenonHeiles};
 pub use method::Method;

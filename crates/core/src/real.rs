@@ -26,6 +26,11 @@ pub trait Real:
     fn splat(x: f64) -> Self;
     /// `self * a + b` with one rounding.
     fn mul_add(self, a: Self, b: Self) -> Self;
+    /// num / den in this type's precision (Taylor recursions divide by k + 1).
+    #[inline(always)]
+    fn ratio(num: f64, den: f64) -> Self {
+        Self::splat(num / den)
+    }
 }
 
 impl Real for f64 {

@@ -1,0 +1,284 @@
+//! The Taylor-series method for the orbit and its deviation vectors.
+//!
+//! Along a solution, x(t + s) = Σ_k x_[k] s^k with x_[k+1] = f_[k]/(k + 1), f_[k] the k-th
+//! coefficient of the right-hand side. For a polynomial ∇V those coefficients follow from
+//! Cauchy products of the coefficients already known ([`TaylorSeries`]); the deviation vectors'
+//! coefficients come from the same recursion applied to D²V·δq. Order and step follow Jorba &
+//! Zou (Exp. Math. 14, 2005): p = ⌊1.5 − 1.16 log10 δ⌋ and h = min(ρ_{p−1}, ρ_p) e^{−2}
+//! e^{−0.7/(p−1)} with ρ_j = ‖x_[j]‖^{−1/j} (research/dop853-taylor.md §3.1). No step is
+//! rejected; the polynomial is the dense output. Generic over the number type, so the same code
+//! runs in f64 (`taylor`) and in double-double (`taylor-dd`).
+
+use crate::dd::DoubleDouble;
+use crate::dop853::StepFailure;
+use crate::hamiltonian::{Hamiltonian, HenonHeiles};
+use crate::real::Real;
+use crate::tangent::Phase;
+
+/// Highest order supported (δ = 1e-32 needs p = 38).
+pub const P_MAX: usize = 48;
+
+/// A number the Taylor integrator can run in: it must convert to f64 for step control.
+pub trait Scalar: Real {
+    fn to_f64(self) -> f64;
+}
+
+impl Scalar for f64 {
+    #[inline(always)]
+    fn to_f64(self) -> f64 {
+        self
+    }
+}
+
+impl Scalar for DoubleDouble {
+    #[inline(always)]
+    fn to_f64(self) -> f64 {
+        DoubleDouble::to_f64(self)
+    }
+}
+
+/// Taylor coefficients of one variable up to P_MAX.
+pub type Series<T> = [T; P_MAX + 1];
+
+/// Σ_{j=0..k} a_j b_{k−j}: coefficient k of a product.
+#[inline(always)]
+pub fn cauchy<T: Real>(a: &Series<T>, b: &Series<T>, k: usize) -> T {
+    let mut s = a[0] * b[k];
+    for j in 1..=k {
+        s = a[j].mul_add(b[k - j], s);
+    }
+    s
+}
+
+/// Hamiltonians whose ∇V is a polynomial, so its series along a solution is a finite
+/// combination of Cauchy products.
+pub trait TaylorSeries<const N: usize>: Hamiltonian<N> {
+    /// Coefficient k of ∇V(q(t)), given the coefficients 0..=k of q.
+    fn grad_coeff<T: Real>(&self, q: &[Series<T>; N], k: usize) -> [T; N];
+    /// Coefficient k of D²V(q(t))·u(t), given the coefficients 0..=k of q and u.
+    fn hess_vec_coeff<T: Real>(&self, q: &[Series<T>; N], u: &[Series<T>; N], k: usize) -> [T; N];
+}
+
+impl TaylorSeries<2> for HenonHeiles {
+    #[inline(always)]
+    fn grad_coeff<T: Real>(&self, q: &[Series<T>; 2], k: usize) -> [T; 2] {
+        // ∇V = (q1 + 2 q1 q2, q2 + q1² − q2²)
+        let two = T::splat(2.0);
+        [
+            two.mul_add(cauchy(&q[0], &q[1], k), q[0][k]),
+            q[1][k] + cauchy(&q[0], &q[0], k) - cauchy(&q[1], &q[1], k),
+        ]
+    }
+
+    #[inline(always)]
+    fn hess_vec_coeff<T: Real>(&self, q: &[Series<T>; 2], u: &[Series<T>; 2], k: usize) -> [T; 2] {
+        // D²V u = (u1 + 2 q2 u1 + 2 q1 u2, 2 q1 u1 + u2 − 2 q2 u2)
+        let two = T::splat(2.0);
+        [
+            two.mul_add(cauchy(&q[1], &u[0], k) + cauchy(&q[0], &u[1], k), u[0][k]),
+            two.mul_add(cauchy(&q[0], &u[0], k) - cauchy(&q[1], &u[1], k), u[1][k]),
+        ]
+    }
+}
+
+/// The Taylor coefficients of a phase point and its deviation vectors.
+#[derive(Clone, Copy, Debug)]
+pub struct Jet<T, const N: usize, const K: usize> {
+    pub q: [Series<T>; N],
+    pub p: [Series<T>; N],
+    pub dq: [[Series<T>; N]; K],
+    pub dp: [[Series<T>; N]; K],
+    pub order: usize,
+}
+
+impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
+    pub fn zero() -> Self {
+        let z = [[T::splat(0.0); P_MAX + 1]; N];
+        Jet {
+            q: z,
+            p: z,
+            dq: [z; K],
+            dp: [z; K],
+            order: 0,
+        }
+    }
+
+    /// Fills the coefficients of order 0..=p from the point `y`.
+    pub fn compute<H: TaylorSeries<N>>(&mut self, ham: &H, y: &Phase<T, N, K>, p: usize) {
+        assert!(p <= P_MAX);
+        self.order = p;
+        for i in 0..N {
+            self.q[i][0] = y.q[i];
+            self.p[i][0] = y.p[i];
+            for k in 0..K {
+                self.dq[k][i][0] = y.dq[k][i];
+                self.dp[k][i][0] = y.dp[k][i];
+            }
+        }
+        for k in 0..p {
+            let inv = T::ratio(1.0, (k + 1) as f64);
+            let g = ham.grad_coeff(&self.q, k);
+            for i in 0..N {
+                self.q[i][k + 1] = self.p[i][k] * inv;
+                self.p[i][k + 1] = -(g[i] * inv);
+            }
+            for v in 0..K {
+                let hv = ham.hess_vec_coeff(&self.q, &self.dq[v], k);
+                for i in 0..N {
+                    self.dq[v][i][k + 1] = self.dp[v][i][k] * inv;
+                    self.dp[v][i][k + 1] = -(hv[i] * inv);
+                }
+            }
+        }
+    }
+
+    /// ‖x_[j]‖∞ over every component.
+    pub fn norm_inf(&self, j: usize) -> f64 {
+        let mut m = 0.0f64;
+        for i in 0..N {
+            m = m
+                .max(self.q[i][j].to_f64().abs())
+                .max(self.p[i][j].to_f64().abs());
+            for k in 0..K {
+                m = m
+                    .max(self.dq[k][i][j].to_f64().abs())
+                    .max(self.dp[k][i][j].to_f64().abs());
+            }
+        }
+        m
+    }
+
+    /// Σ_k x_[k] s^k by Horner's rule.
+    pub fn eval(&self, s: T) -> Phase<T, N, K> {
+        let p = self.order;
+        let horner = |c: &Series<T>| {
+            let mut acc = c[p];
+            for k in (0..p).rev() {
+                acc = acc.mul_add(s, c[k]);
+            }
+            acc
+        };
+        Phase {
+            q: core::array::from_fn(|i| horner(&self.q[i])),
+            p: core::array::from_fn(|i| horner(&self.p[i])),
+            dq: core::array::from_fn(|k| core::array::from_fn(|i| horner(&self.dq[k][i]))),
+            dp: core::array::from_fn(|k| core::array::from_fn(|i| horner(&self.dp[k][i]))),
+        }
+    }
+}
+
+/// Jorba–Zou order for a tolerance: ⌊1.5 − 1.16 log10 δ⌋, at least 2.
+pub fn order_for(delta: f64) -> usize {
+    ((1.5 - 1.16 * delta.log10()).floor() as usize).clamp(2, P_MAX)
+}
+
+/// A Taylor integration in progress, in number type `T`.
+#[derive(Clone, Debug)]
+pub struct Taylor<'h, H, T, const N: usize, const K: usize> {
+    ham: &'h H,
+    pub delta: f64,
+    pub order: usize,
+    /// Time, in `T` so that steps landing on t_end are exact in extended precision too.
+    t: T,
+    t_prev: T,
+    pub y: Phase<T, N, K>,
+    jet: Box<Jet<T, N, K>>,
+    pub steps: u64,
+}
+
+impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'h, H, T, N, K> {
+    pub fn new(ham: &'h H, delta: f64, t0: f64, y: Phase<T, N, K>) -> Self {
+        Taylor {
+            ham,
+            delta,
+            order: order_for(delta),
+            t: T::splat(t0),
+            t_prev: T::splat(t0),
+            y,
+            jet: Box::new(Jet::zero()),
+            steps: 0,
+        }
+    }
+
+    pub fn t(&self) -> f64 {
+        self.t.to_f64()
+    }
+
+    pub fn t_prev(&self) -> f64 {
+        self.t_prev.to_f64()
+    }
+
+    /// The Jorba–Zou step for the current jet (absolute error control unless ‖x_0‖∞ > 1).
+    fn natural_step(&self) -> f64 {
+        let p = self.order;
+        let scale = self.jet.norm_inf(0).max(1.0);
+        let rho = |j: usize| {
+            let n = self.jet.norm_inf(j) / scale;
+            if n > 0.0 {
+                n.powf(-1.0 / j as f64)
+            } else {
+                f64::INFINITY
+            }
+        };
+        let r = rho(p - 1).min(rho(p));
+        r * (-2.0f64).exp() * (-0.7 / (p as f64 - 1.0)).exp()
+    }
+
+    /// One step ending at or before `t_end`, exactly at it when within reach.
+    pub fn step(&mut self, t_end: f64) -> Result<(), StepFailure> {
+        let finite = |v: &[T; N]| v.iter().all(|x| x.to_f64().is_finite());
+        let y = &self.y;
+        if !(finite(&y.q) && finite(&y.p) && y.dq.iter().chain(&y.dp).all(finite)) {
+            return Err(StepFailure::NonFinite { t: self.t() });
+        }
+        self.jet.compute(self.ham, &self.y, self.order);
+        // Infinite when the series terminates (a polynomial solution): then any step is exact.
+        let h_nat = self.natural_step();
+        if h_nat.is_nan() {
+            return Err(StepFailure::NonFinite { t: self.t() });
+        }
+        let remaining = T::splat(t_end) - self.t;
+        let (h, last) = if self.t() + h_nat >= t_end {
+            (remaining, true)
+        } else {
+            (T::splat(h_nat), false)
+        };
+        if h.to_f64() <= self.t().abs() * f64::EPSILON * 0.1 && !last {
+            return Err(StepFailure::StepTooSmall { t: self.t() });
+        }
+        self.y = self.jet.eval(h);
+        self.t_prev = self.t;
+        self.t = if last { T::splat(t_end) } else { self.t + h };
+        self.steps += 1;
+        Ok(())
+    }
+
+    /// The state at time t within the last step, from its Taylor polynomial.
+    pub fn interpolate(&self, t: f64) -> Phase<T, N, K> {
+        self.jet.eval(T::splat(t) - self.t_prev)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn jorba_zou_orders_match_the_papers_table_1() {
+        assert_eq!(order_for(1e-5), 7);
+        assert_eq!(order_for(1e-16), 20);
+        assert_eq!(order_for(1e-15), 18);
+        assert_eq!(order_for(1e-28), 33);
+    }
+
+    #[test]
+    fn cauchy_product_multiplies_polynomials() {
+        let mut a = [0.0; P_MAX + 1];
+        let mut b = [0.0; P_MAX + 1];
+        a[..3].copy_from_slice(&[1.0, 2.0, 3.0]);
+        b[..2].copy_from_slice(&[4.0, 5.0]);
+        // (1 + 2s + 3s²)(4 + 5s) = 4 + 13s + 22s² + 15s³
+        let c: Vec<f64> = (0..5).map(|k| cauchy(&a, &b, k)).collect();
+        assert_eq!(c, vec![4.0, 13.0, 22.0, 15.0, 0.0]);
+    }
+}
