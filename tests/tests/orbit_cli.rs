@@ -266,3 +266,42 @@ fn dop853_runs_in_both_protocols_and_clamps_delta_with_a_warning() {
         .unwrap()
         .contains("--delta is ignored"));
 }
+
+#[test]
+fn taylor_and_taylor_dd_run_and_dd_reaches_extended_precision() {
+    let v = json_stdout(&salient(&[
+        "orbit",
+        "--q2",
+        "0.558",
+        "--p2",
+        "0",
+        "--method",
+        "taylor",
+        "--delta",
+        "1e-15",
+        "--t-final",
+        "1e3",
+        "--json",
+    ]));
+    assert_eq!(v["class"], "regular");
+    assert!((v["sali"].as_f64().unwrap() - 1.253_596_083_7).abs() < 1e-8);
+    let v = json_stdout(&salient(&[
+        "orbit",
+        "--q2",
+        "0.558",
+        "--p2",
+        "0",
+        "--method",
+        "taylor-dd",
+        "--delta",
+        "1e-28",
+        "--t-final",
+        "100",
+        "--protocol",
+        "free",
+        "--json",
+    ]));
+    assert_eq!(v["status"], "ok");
+    let e = v["energy_error_max"].as_f64().unwrap();
+    assert!(e < 1e-20 && e > 0.0, "taylor-dd |ΔH/H| = {e:e}");
+}

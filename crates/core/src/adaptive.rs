@@ -59,6 +59,14 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     fn t_prev(&self) -> f64;
     /// Accepted steps so far.
     fn steps(&self) -> u64;
+    /// |H − H0|/|H0| in the integrator's own precision, now or (`Some(t)`) at a time within
+    /// the last step.
+    fn energy_error(&self, at: Option<f64>) -> f64;
+}
+
+/// |h − h0| relative to |h0| (absolute when h0 is ~0).
+fn relative(dh: f64, h0: f64) -> f64 {
+    dh.abs() / if h0.abs() > 1e-300 { h0.abs() } else { 1.0 }
 }
 
 /// DOP853 with the dense output of its last step.
@@ -66,15 +74,20 @@ pub struct Dop853Orbit<'h, H, const N: usize, const K: usize> {
     pub inner: Dop853<'h, H, N, K>,
     dense: Dense<N, K>,
     t_prev: f64,
+    ham: &'h H,
+    h0: f64,
 }
 
 impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853Orbit<'h, H, N, K> {
-    pub fn new(inner: Dop853<'h, H, N, K>) -> Self {
+    pub fn new(ham: &'h H, inner: Dop853<'h, H, N, K>) -> Self {
         let t = inner.t;
+        let h0 = ham.energy(&inner.y.q, &inner.y.p);
         Dop853Orbit {
             dense: Dense::empty(),
             inner,
             t_prev: t,
+            ham,
+            h0,
         }
     }
 }
@@ -107,6 +120,10 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
     fn steps(&self) -> u64 {
         self.inner.accepted
     }
+    fn energy_error(&self, at: Option<f64>) -> f64 {
+        let y = at.map_or(self.inner.y, |t| self.dense.at(t));
+        relative(self.ham.energy(&y.q, &y.p) - self.h0, self.h0)
+    }
 }
 
 /// Scales the deviation vectors of `y` to unit length (the factors rounded to f64, then applied
@@ -135,6 +152,17 @@ pub fn unit_vectors<T: Scalar, const N: usize, const K: usize>(y: &mut Phase<T, 
 /// The Taylor method as an adaptive integrator; the step's polynomial is the dense output.
 pub struct TaylorOrbit<'h, H, T, const N: usize, const K: usize> {
     pub inner: Taylor<'h, H, T, N, K>,
+    ham: &'h H,
+    h0: T,
+}
+
+impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize>
+    TaylorOrbit<'h, H, T, N, K>
+{
+    pub fn new(ham: &'h H, inner: Taylor<'h, H, T, N, K>) -> Self {
+        let h0 = ham.energy(&inner.y.q, &inner.y.p);
+        TaylorOrbit { inner, ham, h0 }
+    }
 }
 
 impl<H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
@@ -161,6 +189,13 @@ impl<H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> AdaptiveInte
     fn steps(&self) -> u64 {
         self.inner.steps
     }
+    fn energy_error(&self, at: Option<f64>) -> f64 {
+        let y = at.map_or(self.inner.y, |t| self.inner.interpolate(t));
+        relative(
+            (self.ham.energy(&y.q, &y.p) - self.h0).to_f64(),
+            self.h0.to_f64(),
+        )
+    }
 }
 
 /// A phase point rounded to f64.
@@ -176,12 +211,9 @@ pub fn to_f64_phase<T: Scalar, const N: usize, const K: usize>(
 }
 
 /// Bookkeeping at the multiples of τ and at step ends.
-struct Books<'a, H, const K: usize> {
-    ham: &'a H,
+struct Books<'a, const K: usize> {
     config: &'a OrbitConfig,
     requests: &'a Requests,
-    h0: f64,
-    h_scale: f64,
     r2_max: f64,
     /// Σ ln of the renormalisation factors of the first vector.
     ln_growth: f64,
@@ -190,14 +222,7 @@ struct Books<'a, H, const K: usize> {
     next_sample: usize,
 }
 
-impl<H, const K: usize> Books<'_, H, K> {
-    fn energy_error<const N: usize>(&self, y: &Phase<f64, N, K>) -> f64
-    where
-        H: Hamiltonian<N>,
-    {
-        (self.ham.energy(&y.q, &y.p) - self.h0).abs() / self.h_scale
-    }
-
+impl<const K: usize> Books<'_, K> {
     fn mle<const N: usize>(&self, y: &Phase<f64, N, K>, t: f64) -> f64 {
         if t > 0.0 {
             (self.ln_growth + 0.5 * norm2(&y.dq[0], &y.dp[0]).ln()) / t
@@ -211,11 +236,9 @@ impl<H, const K: usize> Books<'_, H, K> {
         &mut self,
         n: u64,
         y: &Phase<f64, N, K>,
+        energy_error: impl FnOnce() -> f64,
         out: &mut OrbitResult<N>,
-    ) -> bool
-    where
-        H: Hamiltonian<N>,
-    {
+    ) -> bool {
         let t = n as f64 * self.config.tau;
         if self.next_sample < self.samples.len() && self.samples[self.next_sample] == n {
             self.next_sample += 1;
@@ -228,7 +251,7 @@ impl<H, const K: usize> Books<'_, H, K> {
                     Vec::new()
                 },
                 mle: self.mle(y, t),
-                energy_error: self.energy_error(y),
+                energy_error: energy_error(),
             });
         }
         let th = self.config.thresholds;
@@ -236,10 +259,11 @@ impl<H, const K: usize> Books<'_, H, K> {
     }
 
     /// At a step end: escape, non-finite, energy. Returns the status that stops the orbit.
-    fn at_step_end<const N: usize>(&mut self, y: &Phase<f64, N, K>) -> Option<Status>
-    where
-        H: Hamiltonian<N>,
-    {
+    fn at_step_end<const N: usize>(
+        &mut self,
+        y: &Phase<f64, N, K>,
+        energy_error: impl FnOnce() -> f64,
+    ) -> Option<Status> {
         let r2 = dot(&y.q, &y.q);
         if r2.is_nan()
             || (0..K).any(|k| !norm2(&y.dq[k], &y.dp[k]).is_finite())
@@ -251,7 +275,7 @@ impl<H, const K: usize> Books<'_, H, K> {
             return Some(Status::Escaped);
         }
         if self.requests.energy {
-            self.energy_max = self.energy_max.max(self.energy_error(y));
+            self.energy_max = self.energy_max.max(energy_error());
         }
         None
     }
@@ -306,16 +330,12 @@ where
 {
     assert!(K >= 2, "SALI needs two deviation vectors");
     let y0 = integ.state();
-    let h0 = ham.energy(&y0.q, &y0.p);
     let tau = config.tau;
     let n_final = steps_to(config.t_final, tau);
     let radius = config.escape_radius.unwrap_or_else(|| ham.escape_radius());
-    let mut books: Books<'_, H, K> = Books {
-        ham,
+    let mut books: Books<'_, K> = Books {
         config,
         requests,
-        h0,
-        h_scale: if h0.abs() > 1e-300 { h0.abs() } else { 1.0 },
         r2_max: radius * radius,
         ln_growth: 0.0,
         energy_max: 0.0,
@@ -343,7 +363,7 @@ where
             };
             break;
         }
-        if let Some(s) = books.at_step_end(&integ.state()) {
+        if let Some(s) = books.at_step_end(&integ.state(), || integ.energy_error(None)) {
             status = s;
             break;
         }
@@ -359,7 +379,7 @@ where
                 let y = integ.state();
                 t_end_state = n as f64 * tau;
                 end_state = y;
-                if books.at_tau(n, &y, &mut out) {
+                if books.at_tau(n, &y, || integ.energy_error(None), &mut out) {
                     status = Status::ChaoticEarlyStop;
                     break;
                 }
@@ -369,14 +389,11 @@ where
                 while n < n_final && (n + 1) as f64 * tau <= integ.t() {
                     n += 1;
                     let t = n as f64 * tau;
-                    let y = if t == integ.t() {
-                        integ.state()
-                    } else {
-                        integ.interpolate(t)
-                    };
+                    let at = (t != integ.t()).then_some(t);
+                    let y = at.map_or_else(|| integ.state(), |t| integ.interpolate(t));
                     t_end_state = t;
                     end_state = y;
-                    if books.at_tau(n, &y, &mut out) {
+                    if books.at_tau(n, &y, || integ.energy_error(at), &mut out) {
                         status = Status::ChaoticEarlyStop;
                         break 'outer;
                     }

@@ -26,12 +26,10 @@ fn dop(
         dq,
         dp,
     };
-    let mut integ = Dop853Orbit::new(Dop853::new(
+    let mut integ = Dop853Orbit::new(
         &HenonHeiles,
-        Dop853Config::with_delta(delta),
-        0.0,
-        y,
-    ));
+        Dop853::new(&HenonHeiles, Dop853Config::with_delta(delta), 0.0, y),
+    );
     integrate_adaptive(&HenonHeiles, &mut integ, protocol, cfg, req)
 }
 

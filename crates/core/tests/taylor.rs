@@ -68,9 +68,10 @@ fn taylor(
     cfg: &OrbitConfig,
     req: &Requests,
 ) -> OrbitResult<2> {
-    let mut integ = TaylorOrbit {
-        inner: Taylor::new(&HenonHeiles, delta, 0.0, start(x)),
-    };
+    let mut integ = TaylorOrbit::new(
+        &HenonHeiles,
+        Taylor::new(&HenonHeiles, delta, 0.0, start(x)),
+    );
     integrate_adaptive(&HenonHeiles, &mut integ, protocol, cfg, req)
 }
 
