@@ -2,6 +2,7 @@
 //! libraries; the numerics live in `salient-core`, plots and tables in `salient-report`.
 
 mod orbit;
+mod precision;
 mod usage;
 
 use clap::{Parser, Subcommand};
@@ -22,12 +23,16 @@ struct Cli {
 enum Command {
     /// Integrate one orbit with its deviation vectors and report SALI, GALI, mLE and energy error.
     Orbit(orbit::OrbitArgs),
+    /// Speed against error: every method over a ladder of τ or δ on one orbit, against a
+    /// double-double Taylor reference.
+    Precision(precision::PrecisionArgs),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Orbit(args) => orbit::run(args),
+        Command::Precision(args) => precision::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -2,17 +2,11 @@
 
 use crate::usage::{finite, positive, runtime, CliError, CliResult};
 use clap::{Args, ValueEnum};
-use salient_core::adaptive::TaylorOrbit;
-use salient_core::adaptive::{integrate_adaptive, Dop853Orbit, Protocol as AdaptiveProtocol};
-use salient_core::dd::DoubleDouble;
-use salient_core::dop853::{Dop853, Dop853Config};
-use salient_core::orbit::{
-    initial_vectors, integrate, OrbitConfig, OrbitResult, Requests, Thresholds,
-};
+use salient_core::adaptive::Protocol as AdaptiveProtocol;
+use salient_core::orbit::{OrbitConfig, OrbitResult, Requests, Thresholds};
+use salient_core::run::{run_orbit, MethodRun};
 use salient_core::section::on_section;
-use salient_core::tangent::Phase;
-use salient_core::taylor::Taylor;
-use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method, TangentMap};
+use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method};
 use salient_report::{render_loglog_png, HLine, Line, LogLogPlot, ReportError};
 use serde_json::{json, Map, Value};
 use std::fmt::Write as _;
@@ -244,62 +238,20 @@ pub fn run(args: OrbitArgs) -> CliResult<()> {
 
 /// Runs the job's method with `K` deviation vectors.
 fn integrate_job<const K: usize>(job: &OrbitJob) -> OrbitResult<2> {
-    let ham = HenonHeiles;
-    match &job.method {
-        Method::TangentMap(scheme) => {
-            let map = TangentMap::new(&ham, scheme, job.config.tau);
-            integrate::<_, 2, K>(&map, job.q, job.p, &job.config, &job.requests)
-        }
-        Method::Dop853 => {
-            let (dq, dp) = initial_vectors::<2, K>(job.config.deviation);
-            let y = Phase {
-                q: job.q,
-                p: job.p,
-                dq,
-                dp,
-            };
-            let delta = job.delta.expect("adaptive methods carry a tolerance");
-            let mut integ = Dop853Orbit::new(
-                &ham,
-                Dop853::new(&ham, Dop853Config::with_delta(delta), 0.0, y),
-            );
-            integrate_adaptive(&ham, &mut integ, job.protocol, &job.config, &job.requests)
-        }
-        Method::Taylor => {
-            let (dq, dp) = initial_vectors::<2, K>(job.config.deviation);
-            let y = Phase {
-                q: job.q,
-                p: job.p,
-                dq,
-                dp,
-            };
-            let delta = job.delta.expect("adaptive methods carry a tolerance");
-            let mut integ = TaylorOrbit::new(&ham, Taylor::new(&ham, delta, 0.0, y));
-            integrate_adaptive(&ham, &mut integ, job.protocol, &job.config, &job.requests)
-        }
-        Method::TaylorDd => {
-            let (dq, dp) = initial_vectors::<2, K>(job.config.deviation);
-            let y = Phase {
-                q: job.q.map(DoubleDouble::from_f64),
-                p: dd_momenta(job.energy, job.q, job.p),
-                dq: dq.map(|v| v.map(DoubleDouble::from_f64)),
-                dp: dp.map(|v| v.map(DoubleDouble::from_f64)),
-            };
-            let delta = job.delta.expect("adaptive methods carry a tolerance");
-            let mut integ = TaylorOrbit::new(&ham, Taylor::new(&ham, delta, 0.0, y));
-            integrate_adaptive(&ham, &mut integ, job.protocol, &job.config, &job.requests)
-        }
-    }
-}
-
-/// The momenta with p1 recomputed from the energy in double-double, so the extended-precision
-/// run starts on the energy surface to its own precision.
-fn dd_momenta(energy: f64, q: [f64; 2], p: [f64; 2]) -> [DoubleDouble; 2] {
-    let qd = q.map(DoubleDouble::from_f64);
-    let p2 = DoubleDouble::from_f64(p[1]);
-    let two = DoubleDouble::from_f64(2.0);
-    let radicand = (DoubleDouble::from_f64(energy) - HenonHeiles.potential(&qd)) * two - p2 * p2;
-    [radicand.sqrt(), p2]
+    let run = MethodRun {
+        method: job.method.clone(),
+        delta: job.delta,
+        protocol: job.protocol,
+    };
+    run_orbit::<_, 2, K>(
+        &HenonHeiles,
+        &run,
+        job.energy,
+        job.q,
+        job.p,
+        &job.config,
+        &job.requests,
+    )
 }
 
 fn summary_json(job: &OrbitJob, r: &OrbitResult<2>, wall: f64) -> Value {

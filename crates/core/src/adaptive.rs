@@ -413,6 +413,8 @@ where
         // reaches n_final or the orbit stops), so its scale matches `ln_growth`.
         let y = end_state;
         out.t_reached = t_end_state;
+        out.q_end = y.q;
+        out.p_end = y.p;
         out.sali = sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1]));
         out.mle = books.mle(&y, t_end_state);
         out.gali = if requests.gali {
@@ -427,6 +429,9 @@ where
         });
     } else {
         out.t_reached = integ.t();
+        let y = integ.state();
+        out.q_end = y.q;
+        out.p_end = y.p;
         out.sali = f64::NAN;
         out.mle = f64::NAN;
         out.class = None;

@@ -163,11 +163,16 @@ pub struct OrbitResult<const N: usize> {
     pub energy_error_max: Option<f64>,
     pub crossings: Vec<Crossing<N>>,
     pub series: Vec<Sample>,
+    /// The orbit's phase-space point at `t_reached`.
+    pub q_end: [f64; N],
+    pub p_end: [f64; N],
 }
 
 impl<const N: usize> OrbitResult<N> {
     pub fn empty() -> Self {
         OrbitResult {
+            q_end: [f64::NAN; N],
+            p_end: [f64::NAN; N],
             status: Status::Ok,
             class: None,
             t_reached: 0.0,
@@ -446,6 +451,8 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
         let t = n as f64 * self.tau;
         out.status = self.status;
         out.t_reached = t;
+        out.q_end = x.q;
+        out.p_end = x.p;
         out.steps = n;
         out.energy_error_max = self.requests.energy.then_some(self.energy_max);
         if matches!(self.status, Status::Ok | Status::ChaoticEarlyStop) {

@@ -48,7 +48,7 @@ const MIN_DRAWABLE: f64 = 1e-300;
 const MAX_DRAWABLE: f64 = 1e300;
 
 /// Line colours, cycled (a colour-blind-friendly categorical palette).
-pub(crate) const PALETTE: [RGBColor; 8] = [
+pub(crate) const PALETTE: [RGBColor; 14] = [
     RGBColor(0, 114, 178),   // blue
     RGBColor(213, 94, 0),    // vermilion
     RGBColor(0, 158, 115),   // bluish green
@@ -57,6 +57,12 @@ pub(crate) const PALETTE: [RGBColor; 8] = [
     RGBColor(86, 180, 233),  // sky blue
     RGBColor(0, 0, 0),       // black
     RGBColor(160, 130, 30),  // ochre
+    RGBColor(120, 40, 140),  // plum
+    RGBColor(150, 150, 150), // grey
+    RGBColor(200, 30, 60),   // crimson
+    RGBColor(40, 80, 30),    // dark green
+    RGBColor(110, 70, 20),   // brown
+    RGBColor(30, 40, 120),   // navy
 ];
 
 /// Grey levels and dash patterns (dash, gap) for the reference lines, cycled.

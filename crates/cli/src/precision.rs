@@ -1,0 +1,252 @@
+//! `salient precision`: speed against error for every method on one orbit.
+
+use crate::usage::{finite, runtime, CliError, CliResult};
+use clap::Args;
+use salient_core::precision::{
+    default_ladder, reference, run_ladder, Row, ADAPTIVE_TAU, REFERENCE_DELTA,
+};
+use salient_core::section::on_section;
+use salient_core::{Hamiltonian, HenonHeiles};
+use salient_report::{render_loglog_png, Line, LogLogPlot, Table};
+use serde_json::{json, Value};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+#[derive(Args, Debug)]
+#[command(allow_negative_numbers = true)]
+pub struct PrecisionArgs {
+    /// R1, C1, C2 (the seed paper's orbits) or Q2,P2 on the section q1 = 0.
+    #[arg(long, default_value = "R1")]
+    orbit: String,
+    /// Final time of every run.
+    #[arg(long = "t-final", default_value_t = 1e3)]
+    t_final: f64,
+    /// Energy of the orbit.
+    #[arg(long, default_value_t = 0.125)]
+    energy: f64,
+    /// Write precision.md, precision.csv, precision.json and work_precision.png here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print exactly one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// (q2, p2) of a named orbit or of "Q2,P2".
+fn parse_orbit(s: &str) -> CliResult<(String, f64, f64)> {
+    let named = match s.to_ascii_uppercase().as_str() {
+        "R1" => Some((0.558, 0.0)),
+        "C1" => Some((-0.25, 0.0)),
+        "C2" => Some((0.335036, -0.385631)),
+        _ => None,
+    };
+    if let Some((q2, p2)) = named {
+        return Ok((s.to_ascii_uppercase(), q2, p2));
+    }
+    let bad = || {
+        CliError::Usage(format!(
+            "--orbit must be R1, C1, C2 or Q2,P2 with two finite numbers (got '{s}')"
+        ))
+    };
+    let (a, b) = s.split_once(',').ok_or_else(bad)?;
+    let q2: f64 = a.trim().parse().map_err(|_| bad())?;
+    let p2: f64 = b.trim().parse().map_err(|_| bad())?;
+    if !(q2.is_finite() && p2.is_finite()) {
+        return Err(bad());
+    }
+    Ok((format!("{q2},{p2}"), q2, p2))
+}
+
+fn fmt_num(x: f64) -> String {
+    if x.is_nan() {
+        "—".into()
+    } else {
+        format!("{x:.3e}")
+    }
+}
+
+fn label(row: &Row) -> String {
+    match row.setting.run.delta {
+        Some(d) => format!("δ={d:e}"),
+        None => format!("τ={}", row.setting.tau),
+    }
+}
+
+fn row_json(r: &Row) -> Value {
+    let run = &r.setting.run;
+    json!({
+        "method": run.method.name(),
+        "tau": r.setting.tau,
+        "delta": run.delta,
+        "protocol": run.method.is_adaptive().then(|| run.protocol.as_str()),
+        "order": r.order,
+        "status": r.status.as_str(),
+        "steps": r.steps,
+        "wall_s": r.wall_s,
+        "ns_per_step": r.ns_per_step,
+        "energy_error_max": r.energy_error_max,
+        "state_error": r.state_error,
+        "sali": r.sali,
+        "class": r.class.map(|c| c.as_str()),
+    })
+}
+
+pub fn run(args: PrecisionArgs) -> CliResult<()> {
+    let (name, q2, p2) = parse_orbit(&args.orbit)?;
+    let energy = finite("--energy", args.energy)?;
+    if !(args.t_final.is_finite() && args.t_final >= 0.5 && args.t_final <= 1e7) {
+        return Err(CliError::Usage(format!(
+            "--t-final must be a finite number in [0.5, 1e7] (got {})",
+            args.t_final
+        )));
+    }
+    let (q, p) = on_section(&HenonHeiles, energy, &[q2], &[p2]).map_err(|_| {
+        let e_min = HenonHeiles.potential(&[0.0, q2]) + 0.5 * p2 * p2;
+        CliError::Usage(format!(
+            "--energy {energy}: orbit {name} is not on the section q1 = 0, p1 > 0; allowed: --energy > {e_min}"
+        ))
+    })?;
+    let ladder = default_ladder();
+    let n = ladder.len();
+    eprintln!(
+        "salient precision: orbit {name}, t = {}, reference taylor-dd δ = {REFERENCE_DELTA:e}",
+        args.t_final
+    );
+    let reference = reference(&HenonHeiles, energy, q, p, args.t_final);
+    let rows = run_ladder(
+        &HenonHeiles,
+        energy,
+        q,
+        p,
+        args.t_final,
+        &ladder,
+        &reference,
+        |i, r| {
+            eprintln!(
+                "[{:>2}/{n}] {:<12} {:<12} {:>9.3} s  error {}",
+                i + 1,
+                r.setting.run.method.name(),
+                label(r),
+                r.wall_s,
+                fmt_num(r.state_error)
+            );
+        },
+    );
+
+    let mut table = Table::new(&[
+        "method",
+        "tau",
+        "delta",
+        "protocol",
+        "order",
+        "steps",
+        "wall_s",
+        "ns/step",
+        "max |dH/H|",
+        "state error",
+        "SALI",
+        "class",
+    ]);
+    for r in &rows {
+        let run = &r.setting.run;
+        table.push(vec![
+            run.method.name(),
+            format!("{}", r.setting.tau),
+            run.delta.map_or("—".into(), |d| format!("{d:e}")),
+            if run.method.is_adaptive() {
+                run.protocol.as_str().into()
+            } else {
+                "—".into()
+            },
+            r.order.to_string(),
+            r.steps.to_string(),
+            format!("{:.4}", r.wall_s),
+            format!("{:.0}", r.ns_per_step),
+            fmt_num(r.energy_error_max),
+            fmt_num(r.state_error),
+            format!("{:.6}", r.sali),
+            r.class
+                .map_or(r.status.as_str().to_string(), |c| c.as_str().to_string()),
+        ]);
+    }
+    let summary = json!({
+        "orbit": { "name": name, "q2": q2, "p2": p2, "energy": energy },
+        "t_final": args.t_final,
+        "adaptive_tau": ADAPTIVE_TAU,
+        "reference": {
+            "method": "taylor-dd", "delta": REFERENCE_DELTA, "protocol": "free",
+            "steps": reference.steps, "sali": reference.sali,
+            "q_end": reference.q_end, "p_end": reference.p_end,
+        },
+        "rows": rows.iter().map(row_json).collect::<Vec<_>>(),
+    });
+    if let Some(dir) = &args.out {
+        write_outputs(dir, &name, args.t_final, &table, &summary, &rows)?;
+    }
+    if args.json {
+        println!("{summary}");
+    } else {
+        print!("{}", table.to_markdown());
+        if let Some(dir) = &args.out {
+            println!(
+                "wrote {}/precision.md, precision.csv, precision.json, work_precision.png",
+                dir.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+fn write_outputs(
+    dir: &Path,
+    name: &str,
+    t_final: f64,
+    table: &Table,
+    summary: &Value,
+    rows: &[Row],
+) -> CliResult<()> {
+    std::fs::create_dir_all(dir).map_err(|e| runtime(&format!("creating {}", dir.display()), e))?;
+    let write = |file: &str, text: String| {
+        let path = dir.join(file);
+        std::fs::write(&path, text).map_err(|e| runtime(&format!("writing {}", path.display()), e))
+    };
+    write("precision.md", table.to_markdown())?;
+    write("precision.csv", table.to_csv())?;
+    write(
+        "precision.json",
+        serde_json::to_string_pretty(summary).expect("JSON") + "\n",
+    )?;
+
+    // One line per method and protocol: end-point error against wall time.
+    let mut groups: BTreeMap<String, (Vec<f64>, Vec<f64>)> = BTreeMap::new();
+    let mut labels = Vec::new();
+    for r in rows {
+        let run = &r.setting.run;
+        let key = if run.method.is_adaptive() {
+            format!("{} ({})", run.method.name(), run.protocol.as_str())
+        } else {
+            run.method.name()
+        };
+        let g = groups.entry(key).or_default();
+        g.0.push(r.wall_s);
+        g.1.push(r.state_error);
+        labels.push((r.wall_s, r.state_error, label(r)));
+    }
+    let lines: Vec<Line> = groups
+        .iter()
+        .map(|(k, (xs, ys))| Line { label: k, xs, ys })
+        .collect();
+    let title = format!("work-precision, orbit {name}, t = {t_final}");
+    let plot = LogLogPlot {
+        title: &title,
+        x_label: "wall time (s)",
+        y_label: "end-point error vs taylor-dd",
+        lines,
+        hlines: Vec::new(),
+        point_labels: labels,
+        markers: true,
+    };
+    render_loglog_png(&plot, &dir.join("work_precision.png"), 1400, 1000)
+        .map_err(|e| runtime("plotting work_precision.png", e))?;
+    Ok(())
+}

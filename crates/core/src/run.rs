@@ -1,0 +1,97 @@
+//! One entry point for every method: a [`MethodRun`] says which integrator, with which τ, δ and
+//! protocol, and [`run_orbit`] dispatches to the tangent-map, DOP853 or Taylor driver.
+
+use crate::adaptive::{integrate_adaptive, Dop853Orbit, Protocol, TaylorOrbit};
+use crate::dd::DoubleDouble;
+use crate::dop853::{Dop853, Dop853Config};
+use crate::method::Method;
+use crate::orbit::{initial_vectors, integrate, OrbitConfig, OrbitResult, Requests};
+use crate::tangent::{Phase, TangentMap};
+use crate::taylor::{Taylor, TaylorSeries};
+
+/// A method with its settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MethodRun {
+    pub method: Method,
+    /// The tolerance in force (adaptive methods; `None` for tangent-map methods).
+    pub delta: Option<f64>,
+    /// Protocol of the adaptive methods.
+    pub protocol: Protocol,
+}
+
+impl MethodRun {
+    /// The Taylor order, DOP853's 8 or the splitting scheme's order.
+    pub fn order(&self) -> u32 {
+        match &self.method {
+            Method::TangentMap(s) => s.order,
+            Method::Dop853 => 8,
+            Method::Taylor | Method::TaylorDd => {
+                crate::taylor::order_for(self.delta.expect("adaptive methods carry a tolerance"))
+                    as u32
+            }
+        }
+    }
+}
+
+/// Integrates the orbit from (q, p) — a point of the energy surface `energy` — with `K`
+/// deviation vectors. `taylor-dd` recomputes p[0] from the energy in double-double so that it
+/// starts on the energy surface to its own precision.
+pub fn run_orbit<H: TaylorSeries<N>, const N: usize, const K: usize>(
+    ham: &H,
+    run: &MethodRun,
+    energy: f64,
+    q: [f64; N],
+    p: [f64; N],
+    config: &OrbitConfig,
+    requests: &Requests,
+) -> OrbitResult<N> {
+    let (dq, dp) = initial_vectors::<N, K>(config.deviation);
+    let delta = || run.delta.expect("adaptive methods carry a tolerance");
+    match &run.method {
+        Method::TangentMap(scheme) => {
+            let map = TangentMap::new(ham, scheme, config.tau);
+            integrate::<H, N, K>(&map, q, p, config, requests)
+        }
+        Method::Dop853 => {
+            let y = Phase { q, p, dq, dp };
+            let mut integ = Dop853Orbit::new(
+                ham,
+                Dop853::new(ham, Dop853Config::with_delta(delta()), 0.0, y),
+            );
+            integrate_adaptive(ham, &mut integ, run.protocol, config, requests)
+        }
+        Method::Taylor => {
+            let y = Phase { q, p, dq, dp };
+            let mut integ = TaylorOrbit::new(ham, Taylor::new(ham, delta(), 0.0, y));
+            integrate_adaptive(ham, &mut integ, run.protocol, config, requests)
+        }
+        Method::TaylorDd => {
+            let y = Phase {
+                q: q.map(DoubleDouble::from_f64),
+                p: dd_momenta(ham, energy, q, p),
+                dq: dq.map(|v| v.map(DoubleDouble::from_f64)),
+                dp: dp.map(|v| v.map(DoubleDouble::from_f64)),
+            };
+            let mut integ = TaylorOrbit::new(ham, Taylor::new(ham, delta(), 0.0, y));
+            integrate_adaptive(ham, &mut integ, run.protocol, config, requests)
+        }
+    }
+}
+
+/// The momenta with p[0] = √(2(E − V(q)) − Σ_{i≥1} p_i²) evaluated in double-double.
+fn dd_momenta<H: TaylorSeries<N>, const N: usize>(
+    ham: &H,
+    energy: f64,
+    q: [f64; N],
+    p: [f64; N],
+) -> [DoubleDouble; N] {
+    let qd = q.map(DoubleDouble::from_f64);
+    let mut pd = p.map(DoubleDouble::from_f64);
+    let two = DoubleDouble::from_f64(2.0);
+    let mut radicand = (DoubleDouble::from_f64(energy) - ham.potential(&qd)) * two;
+    for x in &pd[1..] {
+        radicand -= *x * *x;
+    }
+    pd[0] = radicand.sqrt();
+    pd
+}
