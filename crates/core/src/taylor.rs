@@ -62,22 +62,28 @@ pub trait TaylorSeries<const N: usize>: Hamiltonian<N> {
 impl TaylorSeries<2> for HenonHeiles {
     #[inline(always)]
     fn grad_coeff<T: Real>(&self, q: &[Series<T>; 2], k: usize) -> [T; 2] {
-        // ∇V = (q1 + 2 q1 q2, q2 + q1² − q2²)
-        let two = T::splat(2.0);
-        [
-            two.mul_add(cauchy(&q[0], &q[1], k), q[0][k]),
-            q[1][k] + cauchy(&q[0], &q[0], k) - cauchy(&q[1], &q[1], k),
-        ]
+        // ∇V = (q1 + 2 q1 q2, q2 + q1² − q2²) = (q1 + 2 q1 q2, q2 + (q1 − q2)(q1 + q2)). The
+        // products are summed in one pass so their chains of fused multiply-adds interleave.
+        let (a, b) = (&q[0], &q[1]);
+        let (mut s12, mut sd) = (a[0] * b[k], (a[0] - b[0]) * (a[k] + b[k]));
+        for j in 1..=k {
+            s12 = a[j].mul_add(b[k - j], s12);
+            sd = (a[j] - b[j]).mul_add(a[k - j] + b[k - j], sd);
+        }
+        [T::splat(2.0).mul_add(s12, a[k]), b[k] + sd]
     }
 
     #[inline(always)]
     fn hess_vec_coeff<T: Real>(&self, q: &[Series<T>; 2], u: &[Series<T>; 2], k: usize) -> [T; 2] {
-        // D²V u = (u1 + 2 q2 u1 + 2 q1 u2, 2 q1 u1 + u2 − 2 q2 u2)
+        // D²V u = (u1 + 2 (q2 u1 + q1 u2), u2 + 2 (q1 u1 − q2 u2)), the sums in one pass.
+        let (a, b, x, y) = (&q[0], &q[1], &u[0], &u[1]);
+        let (mut s1, mut s2) = (b[0] * x[k] + a[0] * y[k], a[0] * x[k] - b[0] * y[k]);
+        for j in 1..=k {
+            s1 = b[j].mul_add(x[k - j], a[j].mul_add(y[k - j], s1));
+            s2 = a[j].mul_add(x[k - j], (-b[j]).mul_add(y[k - j], s2));
+        }
         let two = T::splat(2.0);
-        [
-            two.mul_add(cauchy(&q[1], &u[0], k) + cauchy(&q[0], &u[1], k), u[0][k]),
-            two.mul_add(cauchy(&q[0], &u[0], k) - cauchy(&q[1], &u[1], k), u[1][k]),
-        ]
+        [two.mul_add(s1, x[k]), two.mul_add(s2, y[k])]
     }
 }
 
