@@ -284,6 +284,7 @@ fn taylor_and_taylor_dd_run_and_dd_reaches_extended_precision() {
         "--json",
     ]));
     assert_eq!(v["class"], "regular");
+    assert_eq!(v["order"], 18, "Jorba–Zou order at δ = 1e-15");
     assert!((v["sali"].as_f64().unwrap() - 1.253_596_083_7).abs() < 1e-8);
     let v = json_stdout(&salient(&[
         "orbit",

@@ -103,6 +103,16 @@ struct OrbitJob {
     warnings: Vec<String>,
 }
 
+impl OrbitJob {
+    fn run(&self) -> MethodRun {
+        MethodRun {
+            method: self.method.clone(),
+            delta: self.delta,
+            protocol: self.protocol,
+        }
+    }
+}
+
 fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
     let method = Method::parse(&a.method).map_err(|e| CliError::Usage(format!("--method: {e}")))?;
     let q2 = finite("--q2", a.q2)?;
@@ -264,6 +274,7 @@ fn summary_json(job: &OrbitJob, r: &OrbitResult<2>, wall: f64) -> Value {
         "tau": job.config.tau,
         "delta": job.delta,
         "protocol": job.method.is_adaptive().then(|| job.protocol.as_str()),
+        "order": job.run().order(),
         "t_final": job.config.t_final,
         "t_reached": r.t_reached,
         "status": r.status.as_str(),

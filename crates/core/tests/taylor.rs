@@ -259,3 +259,64 @@ fn double_double_taylor_conserves_energy_to_1e_20() {
     assert!(worst < 1e-20, "max |ΔH/H| = {worst:e}");
     assert!(worst > 0.0);
 }
+
+#[test]
+fn crossings_from_the_taylor_polynomial_match_srkn14a() {
+    let req = Requests {
+        crossings: true,
+        ..Requests::default()
+    };
+    let a = taylor(
+        r1(),
+        1e-15,
+        Protocol::Free,
+        &OrbitConfig::new(0.05, 100.0),
+        &req,
+    );
+    let map = TangentMap::new(&HenonHeiles, &Scheme::by_name("srkn14a").unwrap(), 1e-3);
+    let b = integrate::<_, 2, 2>(&map, r1().0, r1().1, &OrbitConfig::new(1e-3, 100.0), &req);
+    assert_eq!(a.crossings.len(), b.crossings.len());
+    assert!(a.crossings.len() > 10);
+    for (x, y) in a.crossings.iter().zip(&b.crossings) {
+        assert!(x.q[0].abs() < 1e-13 && x.p[0] > 0.0);
+        assert!(
+            (x.q[1] - y.q[1]).abs() < 1e-10 && (x.p[1] - y.p[1]).abs() < 1e-10,
+            "{x:?} vs {y:?}"
+        );
+    }
+}
+
+#[test]
+fn orbits_that_blow_up_end_with_a_status_not_a_hang() {
+    // Above the escape energy and with no escape radius, the cubic potential sends the orbit
+    // to infinity in finite time: the step size collapses or the state overflows.
+    let (q, p) = salient_core::section::on_section(&HenonHeiles, 0.3, &[0.5], &[0.6]).unwrap();
+    let mut cfg = OrbitConfig::new(0.05, 1e4);
+    cfg.escape_radius = Some(f64::INFINITY);
+    for protocol in [Protocol::Restart, Protocol::Free] {
+        let r = taylor((q, p), 1e-12, protocol, &cfg, &Requests::default());
+        assert!(
+            matches!(r.status, Status::StepLimit | Status::NonFinite),
+            "{:?}",
+            r.status
+        );
+        assert!(r.t_reached < 100.0 && r.class.is_none());
+        let (dq, dp) = initial_vectors::<2, 2>(Deviation::Axes);
+        let mut d = salient_core::adaptive::Dop853Orbit::new(
+            &HenonHeiles,
+            Dop853::new(
+                &HenonHeiles,
+                Dop853Config::with_delta(1e-12),
+                0.0,
+                Phase { q, p, dq, dp },
+            ),
+        );
+        let r = integrate_adaptive(&HenonHeiles, &mut d, protocol, &cfg, &Requests::default());
+        assert!(
+            matches!(r.status, Status::StepLimit | Status::NonFinite),
+            "{:?}",
+            r.status
+        );
+        assert!(r.t_reached < 100.0 && r.class.is_none());
+    }
+}
