@@ -235,7 +235,7 @@ pub fn initial_vectors<const N: usize, const K: usize>(
 }
 
 /// Steps at which samples are recorded: ~`per_decade` log-spaced per decade, and the last.
-pub(crate) fn sample_steps(per_decade: u32, n_final: u64) -> Vec<u64> {
+pub fn sample_steps(per_decade: u32, n_final: u64) -> Vec<u64> {
     let mut v = Vec::new();
     if per_decade == 0 {
         return v;

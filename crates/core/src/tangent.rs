@@ -103,6 +103,7 @@ pub(crate) enum SubMap {
 }
 
 impl SubMap {
+    #[inline(always)]
     fn scaled(op: Op, h: f64) -> SubMap {
         match op {
             Op::Drift(a) => SubMap::Drift(a * h),
@@ -117,6 +118,7 @@ impl SubMap {
         }
     }
 
+    #[inline(always)]
     fn is_drift(self) -> bool {
         matches!(self, SubMap::Drift(_))
     }

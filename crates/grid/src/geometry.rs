@@ -1,0 +1,192 @@
+//! The grid of cells on the surface of section q1 = 0, p1 > 0, its tiles and canonical order.
+
+use salient_core::section::p1_squared;
+use salient_core::HenonHeiles;
+
+/// A rectangular grid over (q2, p2) with its compatible cells in canonical order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Grid {
+    pub energy: f64,
+    pub n_q2: usize,
+    pub n_p2: usize,
+    pub q2: (f64, f64),
+    pub p2: (f64, f64),
+    /// Tile size in cells along q2 and p2.
+    pub tile: (usize, usize),
+    compatible: Vec<bool>,
+    /// Compatible cells in canonical order: tiles in raster order (q2 tile index outer), and
+    /// cells inside a tile in raster order (i outer, j inner).
+    canonical: Vec<u32>,
+    /// Canonical position of each compatible cell (u32::MAX for the others).
+    position: Vec<u32>,
+}
+
+impl Grid {
+    /// A grid of `n_q2 × n_p2` cells over the given bounds, split into tiles of `tile` cells.
+    /// A cell is compatible when its centre lies on the section (p1² > 0).
+    pub fn new(
+        energy: f64,
+        n_q2: usize,
+        n_p2: usize,
+        q2: (f64, f64),
+        p2: (f64, f64),
+        tile: (usize, usize),
+    ) -> Self {
+        assert!(n_q2 > 0 && n_p2 > 0 && tile.0 > 0 && tile.1 > 0);
+        assert!(n_q2 * n_p2 <= u32::MAX as usize / 2);
+        let mut g = Grid {
+            energy,
+            n_q2,
+            n_p2,
+            q2,
+            p2,
+            tile,
+            compatible: vec![false; n_q2 * n_p2],
+            canonical: Vec::new(),
+            position: vec![u32::MAX; n_q2 * n_p2],
+        };
+        for cell in 0..n_q2 * n_p2 {
+            let (x, y) = g.centre(cell as u32);
+            g.compatible[cell] = p1_squared(&HenonHeiles, energy, &[0.0, x], &[0.0, y]) > 0.0;
+        }
+        for ti in 0..n_q2.div_ceil(tile.0) {
+            for tj in 0..n_p2.div_ceil(tile.1) {
+                let cells: Vec<u32> = g.tile_cells(ti, tj).collect();
+                for cell in cells {
+                    if g.compatible[cell as usize] {
+                        g.position[cell as usize] = g.canonical.len() as u32;
+                        g.canonical.push(cell);
+                    }
+                }
+            }
+        }
+        g
+    }
+
+    pub fn cells(&self) -> usize {
+        self.n_q2 * self.n_p2
+    }
+
+    /// Cell index of (i, j): i along q2, j along p2.
+    pub fn index(&self, i: usize, j: usize) -> u32 {
+        (i * self.n_p2 + j) as u32
+    }
+
+    /// (i, j) of a cell index.
+    pub fn ij(&self, cell: u32) -> (usize, usize) {
+        (cell as usize / self.n_p2, cell as usize % self.n_p2)
+    }
+
+    pub fn spacing(&self) -> (f64, f64) {
+        (
+            (self.q2.1 - self.q2.0) / self.n_q2 as f64,
+            (self.p2.1 - self.p2.0) / self.n_p2 as f64,
+        )
+    }
+
+    /// The cell's centre (q2, p2): its initial condition.
+    pub fn centre(&self, cell: u32) -> (f64, f64) {
+        let (i, j) = self.ij(cell);
+        let (dq, dp) = self.spacing();
+        (
+            self.q2.0 + (i as f64 + 0.5) * dq,
+            self.p2.0 + (j as f64 + 0.5) * dp,
+        )
+    }
+
+    /// The cell containing (q2, p2), if inside the grid.
+    pub fn cell_of(&self, q2: f64, p2: f64) -> Option<u32> {
+        let (dq, dp) = self.spacing();
+        let fi = ((q2 - self.q2.0) / dq).floor();
+        let fj = ((p2 - self.p2.0) / dp).floor();
+        if fi >= 0.0 && fj >= 0.0 && (fi as usize) < self.n_q2 && (fj as usize) < self.n_p2 {
+            Some(self.index(fi as usize, fj as usize))
+        } else {
+            None
+        }
+    }
+
+    pub fn is_compatible(&self, cell: u32) -> bool {
+        self.compatible[cell as usize]
+    }
+
+    pub fn compatible_count(&self) -> usize {
+        self.canonical.len()
+    }
+
+    /// Compatible cells in canonical order.
+    pub fn canonical(&self) -> &[u32] {
+        &self.canonical
+    }
+
+    /// Canonical position of a compatible cell.
+    pub fn position(&self, cell: u32) -> Option<usize> {
+        let p = self.position[cell as usize];
+        (p != u32::MAX).then_some(p as usize)
+    }
+
+    /// Number of tiles along q2 and p2.
+    pub fn tiles(&self) -> (usize, usize) {
+        (
+            self.n_q2.div_ceil(self.tile.0),
+            self.n_p2.div_ceil(self.tile.1),
+        )
+    }
+
+    /// The cells of tile (ti, tj) in raster order (compatible or not).
+    pub fn tile_cells(&self, ti: usize, tj: usize) -> impl Iterator<Item = u32> + '_ {
+        let (i0, j0) = (ti * self.tile.0, tj * self.tile.1);
+        let (i1, j1) = (
+            (i0 + self.tile.0).min(self.n_q2),
+            (j0 + self.tile.1).min(self.n_p2),
+        );
+        (i0..i1).flat_map(move |i| (j0..j1).map(move |j| self.index(i, j)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn paper_grid() -> Grid {
+        let q2 = (
+            0.5 + (160f64).to_radians().cos(),
+            0.5 + (80f64).to_radians().cos(),
+        );
+        Grid::new(0.125, 400, 400, q2, (-0.5, 0.5), (20, 20))
+    }
+
+    #[test]
+    fn the_papers_grid_has_121548_compatible_cells() {
+        assert_eq!(paper_grid().compatible_count(), 121_548);
+    }
+
+    #[test]
+    fn canonical_order_is_tile_major_then_raster() {
+        let g = Grid::new(0.125, 5, 4, (-0.43, 0.67), (-0.5, 0.5), (2, 3));
+        let mut all = Vec::new();
+        for ti in 0..3 {
+            for tj in 0..2 {
+                all.extend(g.tile_cells(ti, tj).filter(|&c| g.is_compatible(c)));
+            }
+        }
+        assert_eq!(g.canonical(), &all[..]);
+        // The first tile is rows i = 0, 1 and columns j = 0..3.
+        let first: Vec<u32> = g.tile_cells(0, 0).collect();
+        assert_eq!(first, vec![0, 1, 2, 4, 5, 6]);
+        for (pos, &c) in g.canonical().iter().enumerate() {
+            assert_eq!(g.position(c), Some(pos));
+        }
+    }
+
+    #[test]
+    fn points_map_to_the_cells_that_contain_them() {
+        let g = paper_grid();
+        for cell in [0u32, 399, 400, 80_199, 159_999] {
+            let (q, p) = g.centre(cell);
+            assert_eq!(g.cell_of(q, p), Some(cell));
+        }
+        assert_eq!(g.cell_of(-0.45, 0.0), None);
+        assert_eq!(g.cell_of(0.0, 0.5), None);
+    }
+}

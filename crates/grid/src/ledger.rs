@@ -1,0 +1,311 @@
+//! The fast-PSS ledger: accepts orbit outcomes in any order and commits them in canonical
+//! order, so the labels equal those of the sequential rule of DESIGN.md whatever the arrival
+//! order:
+//!
+//! walk compatible cells in canonical order; skip a labelled cell; otherwise integrate its
+//! orbit and give its class to its own cell and to every still-unlabelled compatible cell its
+//! upward crossings fall in (`full` mode: only its own cell).
+//!
+//! An outcome whose cell an earlier commit labelled is dropped and counted.
+
+use crate::geometry::Grid;
+use salient_core::orbit::{Class, Status};
+use std::collections::BTreeMap;
+
+/// Whether visited cells are labelled too.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Mode {
+    FastPss,
+    Full,
+}
+
+/// What one orbit produced, as far as the grid is concerned.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Outcome {
+    /// The cell the orbit started from.
+    pub cell: u32,
+    pub class: Option<Class>,
+    pub status: Status,
+    pub sali: f64,
+    /// Compatible cells its upward crossings fell in, sorted and deduplicated.
+    pub visited: Vec<u32>,
+    pub steps: u64,
+    /// Classes at the run's checkpoints (full mode with checkpoints; empty otherwise).
+    pub checkpoints: Vec<Option<Class>>,
+}
+
+/// The label a cell received.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Label {
+    pub class: Option<Class>,
+    pub status: Status,
+    pub sali: f64,
+    /// The cell whose orbit labelled this one.
+    pub source: u32,
+}
+
+/// Commits outcomes in canonical order.
+#[derive(Clone, Debug)]
+pub struct Ledger {
+    mode: Mode,
+    canonical: Vec<u32>,
+    position: Vec<u32>,
+    compatible: Vec<bool>,
+    labels: Vec<Option<Label>>,
+    /// Next canonical position to commit.
+    next: usize,
+    pending: BTreeMap<usize, Outcome>,
+    /// Outcomes committed, in canonical order (their checkpoints feed Fig. 7).
+    pub committed: Vec<Outcome>,
+    pub dropped: u64,
+    pub dropped_steps: u64,
+    pub committed_steps: u64,
+}
+
+impl Ledger {
+    pub fn new(grid: &Grid, mode: Mode) -> Self {
+        let cells = grid.cells();
+        Ledger {
+            mode,
+            canonical: grid.canonical().to_vec(),
+            position: (0..cells as u32)
+                .map(|c| grid.position(c).map_or(u32::MAX, |p| p as u32))
+                .collect(),
+            compatible: (0..cells as u32).map(|c| grid.is_compatible(c)).collect(),
+            labels: vec![None; cells],
+            next: 0,
+            pending: BTreeMap::new(),
+            committed: Vec::new(),
+            dropped: 0,
+            dropped_steps: 0,
+            committed_steps: 0,
+        }
+    }
+
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+
+    pub fn label(&self, cell: u32) -> Option<&Label> {
+        self.labels[cell as usize].as_ref()
+    }
+
+    pub fn is_labelled(&self, cell: u32) -> bool {
+        self.labels[cell as usize].is_some()
+    }
+
+    /// Every compatible cell is labelled.
+    pub fn done(&self) -> bool {
+        self.next == self.canonical.len()
+    }
+
+    /// Compatible cells labelled so far.
+    pub fn resolved(&self) -> usize {
+        self.labels.iter().filter(|l| l.is_some()).count()
+    }
+
+    /// Canonical position of the first cell not yet committed or skipped.
+    pub fn frontier(&self) -> usize {
+        self.next
+    }
+
+    /// Up to `count` cells from the frontier on that are unlabelled and have no pending outcome:
+    /// the cells worth integrating next.
+    pub fn needed(&self, count: usize, in_flight: &dyn Fn(u32) -> bool) -> Vec<u32> {
+        self.canonical[self.next..]
+            .iter()
+            .copied()
+            .filter(|&c| !self.is_labelled(c) && !in_flight(c))
+            .filter(|&c| {
+                !self
+                    .pending
+                    .contains_key(&(self.position[c as usize] as usize))
+            })
+            .take(count)
+            .collect()
+    }
+
+    /// Accepts an outcome (any order) and commits whatever the canonical order now allows.
+    pub fn offer(&mut self, outcome: Outcome) {
+        let pos = self.position[outcome.cell as usize];
+        assert!(
+            pos != u32::MAX,
+            "outcome for an incompatible cell {}",
+            outcome.cell
+        );
+        let pos = pos as usize;
+        if pos < self.next || self.is_labelled(outcome.cell) || self.pending.contains_key(&pos) {
+            self.dropped += 1;
+            self.dropped_steps += outcome.steps;
+        } else {
+            self.pending.insert(pos, outcome);
+        }
+        self.advance();
+    }
+
+    fn advance(&mut self) {
+        while self.next < self.canonical.len() {
+            let cell = self.canonical[self.next];
+            if self.is_labelled(cell) {
+                if let Some(o) = self.pending.remove(&self.next) {
+                    self.dropped += 1;
+                    self.dropped_steps += o.steps;
+                }
+                self.next += 1;
+                continue;
+            }
+            let Some(o) = self.pending.remove(&self.next) else {
+                break;
+            };
+            self.commit(o);
+            self.next += 1;
+        }
+    }
+
+    fn commit(&mut self, o: Outcome) {
+        let label = Label {
+            class: o.class,
+            status: o.status,
+            sali: o.sali,
+            source: o.cell,
+        };
+        self.labels[o.cell as usize] = Some(label);
+        if self.mode == Mode::FastPss {
+            for &v in &o.visited {
+                if self.compatible[v as usize] && self.labels[v as usize].is_none() {
+                    self.labels[v as usize] = Some(label);
+                }
+            }
+        }
+        self.committed_steps += o.steps;
+        self.committed.push(o);
+    }
+}
+
+/// The sequential definition itself, for tests: `integrate(cell)` gives a cell's outcome.
+pub fn sequential(
+    grid: &Grid,
+    mode: Mode,
+    mut integrate: impl FnMut(u32) -> Outcome,
+) -> Vec<Option<Label>> {
+    let mut labels: Vec<Option<Label>> = vec![None; grid.cells()];
+    for &cell in grid.canonical() {
+        if labels[cell as usize].is_some() {
+            continue;
+        }
+        let o = integrate(cell);
+        let label = Label {
+            class: o.class,
+            status: o.status,
+            sali: o.sali,
+            source: cell,
+        };
+        labels[cell as usize] = Some(label);
+        if mode == Mode::FastPss {
+            for &v in &o.visited {
+                if grid.is_compatible(v) && labels[v as usize].is_none() {
+                    labels[v as usize] = Some(label);
+                }
+            }
+        }
+    }
+    labels
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// A fake orbit: a deterministic pseudo-random class and visited set per cell.
+    fn fake(grid: &Grid, seed: u64, cell: u32) -> Outcome {
+        let mut x = seed ^ (cell as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        let class = [Class::Regular, Class::Sticky, Class::Chaotic][(next() % 3) as usize];
+        let n = (next() % 12) as usize;
+        let mut visited: Vec<u32> = (0..n)
+            .map(|_| {
+                // Mostly near the start cell, sometimes anywhere: like regular and chaotic orbits.
+                let r = next();
+                if r % 4 == 0 {
+                    (r % grid.cells() as u64) as u32
+                } else {
+                    let d = (r % 9) as i64 - 4;
+                    (cell as i64 + d).clamp(0, grid.cells() as i64 - 1) as u32
+                }
+            })
+            .filter(|&c| grid.is_compatible(c))
+            .collect();
+        visited.sort_unstable();
+        visited.dedup();
+        Outcome {
+            cell,
+            class: Some(class),
+            status: Status::Ok,
+            sali: 0.5,
+            visited,
+            steps: 100,
+            checkpoints: Vec::new(),
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+
+        /// Outcomes for every compatible cell (speculation beyond the rule), offered in a random
+        /// order, leave exactly the sequential labels; the committed orbits are exactly the
+        /// sequentially integrated ones, and everything else is counted as dropped.
+        #[test]
+        fn ledger_equals_the_sequential_rule_for_any_arrival_order(
+            seed in any::<u64>(),
+            shuffle in any::<u64>(),
+            full in any::<bool>(),
+            n in 4usize..24,
+            tile in 1usize..7,
+        ) {
+            let grid = Grid::new(0.125, n, n + 3, (-0.43, 0.67), (-0.5, 0.5), (tile, tile + 1));
+            let mode = if full { Mode::Full } else { Mode::FastPss };
+            let mut integrated = Vec::new();
+            let want = sequential(&grid, mode, |c| { integrated.push(c); fake(&grid, seed, c) });
+            let mut order: Vec<u32> = grid.canonical().to_vec();
+            let mut s = shuffle | 1;
+            for i in (1..order.len()).rev() {
+                s ^= s << 13; s ^= s >> 7; s ^= s << 17;
+                order.swap(i, (s % (i as u64 + 1)) as usize);
+            }
+            let mut ledger = Ledger::new(&grid, mode);
+            for &c in &order {
+                ledger.offer(fake(&grid, seed, c));
+            }
+            prop_assert!(ledger.done());
+            for c in 0..grid.cells() as u32 {
+                prop_assert_eq!(ledger.label(c).copied(), want[c as usize]);
+            }
+            let committed: Vec<u32> = ledger.committed.iter().map(|o| o.cell).collect();
+            prop_assert_eq!(&committed, &integrated);
+            prop_assert_eq!(ledger.dropped as usize, grid.compatible_count() - integrated.len());
+        }
+    }
+
+    #[test]
+    fn ledger_waits_for_the_frontier_and_reports_what_is_needed() {
+        let grid = Grid::new(0.125, 6, 6, (-0.43, 0.67), (-0.5, 0.5), (3, 3));
+        let mut ledger = Ledger::new(&grid, Mode::FastPss);
+        let canon = grid.canonical().to_vec();
+        // An outcome beyond the frontier is held, not committed.
+        ledger.offer(fake(&grid, 1, canon[2]));
+        assert_eq!(ledger.frontier(), 0);
+        assert!(!ledger.is_labelled(canon[2]));
+        let needed = ledger.needed(2, &|_| false);
+        assert_eq!(needed, vec![canon[0], canon[1]]);
+        assert_eq!(
+            ledger.needed(2, &|c| c == canon[0]),
+            vec![canon[1], canon[3]]
+        );
+    }
+}

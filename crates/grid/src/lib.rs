@@ -1,0 +1,14 @@
+//! Grids of initial conditions on the surface of section: geometry, tiles and canonical order
+//! ([`geometry`]), the fast-PSS [`ledger`] that commits orbit outcomes in canonical order, the
+//! tile [`executor`] that integrates cells on a rayon pool, and the classification counts
+//! ([`summary`]). No files, no networking.
+
+pub mod executor;
+pub mod geometry;
+pub mod ledger;
+pub mod summary;
+
+pub use executor::{integrate_cells, run_embedded, CellRun};
+pub use geometry::Grid;
+pub use ledger::{Label, Ledger, Mode, Outcome};
+pub use summary::Counts;

@@ -1,0 +1,99 @@
+//! The fast-PSS engine on real orbits: the paper's Table 2 TM row, fast vs full, and
+//! independence from the number of threads.
+
+use salient_core::adaptive::Protocol;
+use salient_core::method::Method;
+use salient_core::orbit::OrbitConfig;
+use salient_core::run::MethodRun;
+use salient_core::Scheme;
+use salient_grid::{run_embedded, CellRun, Counts, Grid, Mode};
+
+fn paper_grid(n: usize) -> Grid {
+    let q2 = (
+        0.5 + 160f64.to_radians().cos(),
+        0.5 + 80f64.to_radians().cos(),
+    );
+    Grid::new(0.125, n, n, q2, (-0.5, 0.5), (20, 20))
+}
+
+fn tm(scheme: &str, tau: f64, t_final: f64) -> CellRun {
+    CellRun {
+        run: MethodRun {
+            method: Method::TangentMap(Scheme::by_name(scheme).unwrap()),
+            delta: None,
+            protocol: Protocol::Restart,
+        },
+        config: OrbitConfig::new(tau, t_final),
+        checkpoints_per_decade: 0,
+    }
+}
+
+fn pool(threads: usize) -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+}
+
+#[test]
+fn table2_tm_row_400x400_tau_0_5_t_1e4() {
+    let grid = paper_grid(400);
+    let start = std::time::Instant::now();
+    let ledger =
+        pool(2).install(|| run_embedded(&grid, &tm("sbab2c", 0.5, 1e4), Mode::FastPss, 8, |_| {}));
+    let wall = start.elapsed().as_secs_f64();
+    let c = Counts::of(&grid, &ledger);
+    let (r, s, ch) = c.percent();
+    eprintln!(
+        "400x400 TM τ=0.5 t=1e4: {r:.2} / {s:.2} / {ch:.2} %, {} orbits, {} dropped, {:.2} s, steps {} + dropped {}",
+        ledger.committed.len(),
+        ledger.dropped,
+        wall,
+        ledger.committed_steps,
+        ledger.dropped_steps
+    );
+    assert_eq!(c.compatible, 121_548);
+    // The paper's TM row: 40.89 / 0.38 / 58.73.
+    assert!(
+        (r - 40.89).abs() < 0.5 && (s - 0.38).abs() < 0.5 && (ch - 58.73).abs() < 0.5,
+        "{r} {s} {ch}"
+    );
+    assert!((4000..6000).contains(&ledger.committed.len()));
+}
+
+#[test]
+fn fast_pss_and_full_agree_within_3_points_on_60x60() {
+    // At t = 1e4 the classes have settled (at 1e3 many chaotic orbits still look sticky, and
+    // fast PSS spreads that label over every cell they visit).
+    let grid = paper_grid(60);
+    let run = tm("sbab2c", 0.5, 1e4);
+    let fast = pool(2).install(|| run_embedded(&grid, &run, Mode::FastPss, 16, |_| {}));
+    let full = pool(2).install(|| run_embedded(&grid, &run, Mode::Full, 256, |_| {}));
+    let (a, b) = (
+        Counts::of(&grid, &fast).percent(),
+        Counts::of(&grid, &full).percent(),
+    );
+    assert_eq!(full.committed.len(), grid.compatible_count());
+    assert!(fast.committed.len() < full.committed.len() / 2);
+    for (x, y) in [(a.0, b.0), (a.1, b.1), (a.2, b.2)] {
+        assert!((x - y).abs() < 3.0, "fast {a:?} vs full {b:?}");
+    }
+}
+
+#[test]
+fn labels_do_not_depend_on_threads_or_window() {
+    let grid = paper_grid(50);
+    let run = tm("sbab2c", 0.5, 2e3);
+    let a = pool(1).install(|| run_embedded(&grid, &run, Mode::FastPss, 1, |_| {}));
+    let b = pool(2).install(|| run_embedded(&grid, &run, Mode::FastPss, 64, |_| {}));
+    for c in 0..grid.cells() as u32 {
+        let (x, y) = (a.label(c), b.label(c));
+        assert_eq!(
+            x.map(|l| (l.class, l.source, l.sali.to_bits())),
+            y.map(|l| (l.class, l.source, l.sali.to_bits()))
+        );
+    }
+    assert_eq!(a.dropped, 0, "a window of one speculates nothing");
+    assert!(b.dropped > 0);
+    assert_eq!(a.committed.len(), b.committed.len());
+}
