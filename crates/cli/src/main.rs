@@ -3,6 +3,8 @@
 
 mod orbit;
 mod precision;
+mod run;
+mod spec;
 mod usage;
 
 use clap::{Parser, Subcommand};
@@ -23,6 +25,9 @@ struct Cli {
 enum Command {
     /// Integrate one orbit with its deviation vectors and report SALI, GALI, mLE and energy error.
     Orbit(orbit::OrbitArgs),
+    /// Classify a grid of initial conditions on the surface of section for every member of a
+    /// sweep (embedded: everything in this process).
+    Run(run::RunArgs),
     /// Speed against error: every method over a ladder of τ or δ on one orbit, against a
     /// double-double Taylor reference.
     Precision(precision::PrecisionArgs),
@@ -30,8 +35,22 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Progress and diagnostics go to stderr through tracing; RUST_LOG overrides the level and
+    // SALIENT_LOG_FORMAT=json makes the lines machine-readable.
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false);
+    if std::env::var("SALIENT_LOG_FORMAT").as_deref() == Ok("json") {
+        builder.json().init();
+    } else {
+        builder.init();
+    }
     let result = match cli.command {
         Command::Orbit(args) => orbit::run(args),
+        Command::Run(args) => run::run(args),
         Command::Precision(args) => precision::run(args),
     };
     match result {

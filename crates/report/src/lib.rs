@@ -3,7 +3,7 @@
 //!
 //! By design this crate owns the tables (Markdown, CSV, JSON), the `.npy` array writers, and the
 //! PNG maps and plots; nothing here integrates or computes indicators. So far the plots and
-//! plain tables ([`Table`], Markdown and CSV) exist:
+//! plain tables ([`Table`], Markdown and CSV) and NumPy `.npy` arrays ([`write_npy_f64`]) exist:
 //!
 //! * [`render_loglog_png`] draws lines on log-log axes (SALI/GALI against time, work-precision
 //!   diagrams), with dashed reference lines and a legend;
@@ -18,9 +18,11 @@ mod canvas;
 mod error;
 mod greymap;
 mod loglog;
+mod npy;
 mod table;
 
 pub use error::ReportError;
 pub use greymap::{render_grey_map_png, GREY_MAP_SIZE, NAN_COLOUR};
 pub use loglog::{render_loglog_png, HLine, Line, LogLogPlot};
+pub use npy::{npy_bytes_f64, write_npy_f64, write_npy_u8};
 pub use table::Table;

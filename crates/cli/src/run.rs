@@ -1,0 +1,479 @@
+//! `salient run SPEC.toml`: every member of the sweep on this machine's cores, with the same
+//! ledger and tile executor the distributed mode uses.
+
+use crate::spec::{self, JobSpec, Mode as SpecMode, RunSpec};
+use crate::usage::{runtime, CliError, CliResult};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use salient_core::orbit::{Class, OrbitConfig};
+use salient_core::run::MethodRun;
+use salient_grid::{run_embedded, CellRun, Counts, Grid, Ledger, Mode};
+use salient_report::{
+    render_grey_map_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LogLogPlot, Table,
+};
+use serde_json::{json, Value};
+use std::fmt::Write as _;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    /// Job spec (TOML, or JSON with the same schema).
+    spec: PathBuf,
+    /// Worker threads (default: every core).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Output folder (default: out/<spec name>).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print exactly one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Checkpoints per decade of t at which full-mode orbits are also classified (Fig. 7).
+const CHECKPOINTS_PER_DECADE: u32 = 4;
+
+/// What one finished member of the sweep produced.
+struct RunResult {
+    spec: RunSpec,
+    grid: Grid,
+    ledger: Ledger,
+    counts: Counts,
+    cpu_s: f64,
+    wall_s: f64,
+    dir: PathBuf,
+    /// (t, regular %, sticky %, chaotic %) at the checkpoints (full mode).
+    checkpoints: Vec<(f64, f64, f64, f64)>,
+}
+
+/// CPU time of this process (user + system), from /proc on Linux; NaN elsewhere.
+fn process_cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return f64::NAN;
+    };
+    // Fields after the command name (which may contain spaces) start after the last ')'.
+    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else {
+        return f64::NAN;
+    };
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15 of the whole line, 12 and 13 after ')'.
+    let ticks = |i: usize| fields.get(i).and_then(|f| f.parse::<f64>().ok());
+    match (ticks(11), ticks(12)) {
+        (Some(u), Some(s)) => (u + s) / 100.0,
+        _ => f64::NAN,
+    }
+}
+
+fn run_dir_name(index: usize, r: &RunSpec) -> String {
+    let mut s = format!(
+        "{:02}-{}-tau{}-t{}",
+        index + 1,
+        r.method.name(),
+        r.tau,
+        r.t_final
+    );
+    if let Some(d) = r.delta {
+        let _ = write!(s, "-delta{d:e}");
+    }
+    s
+}
+
+pub fn run(args: RunArgs) -> CliResult<()> {
+    let job = spec::load(&args.spec)?;
+    let threads = match args.threads {
+        Some(0) | Some(1025..) => {
+            return Err(CliError::Usage(format!(
+                "--threads must be in 1..=1024 (got {})",
+                args.threads.unwrap_or(0)
+            )))
+        }
+        Some(n) => n,
+        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
+    };
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| Path::new("out").join(&job.name));
+    std::fs::create_dir_all(&out)
+        .map_err(|e| runtime(&format!("creating {}", out.display()), e))?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| runtime("starting the thread pool", e))?;
+    for w in &job.warnings {
+        tracing::warn!("{w}");
+    }
+
+    let mut results = Vec::new();
+    for (index, r) in job.runs.iter().enumerate() {
+        let result = pool.install(|| run_one(&job, index, r, threads, &out))?;
+        write_run(&job, &result)?;
+        results.push(result);
+    }
+    let table = sweep_table(&results);
+    let summary = json!({ "runs": results.iter().map(run_json).collect::<Vec<_>>() });
+    write_file(&out.join("table.md"), &table.to_markdown())?;
+    write_file(&out.join("table.csv"), &table.to_csv())?;
+    write_file(
+        &out.join("table.json"),
+        &(serde_json::to_string_pretty(&summary).expect("JSON") + "\n"),
+    )?;
+    if results.iter().any(|r| !r.checkpoints.is_empty()) {
+        plot_percent_vs_t(&results, &out.join("percent_vs_t.png"))?;
+    }
+    if args.json {
+        println!("{summary}");
+    } else {
+        print!("{}", table.to_markdown());
+        println!("wrote {}", out.display());
+    }
+    Ok(())
+}
+
+fn run_one(
+    job: &JobSpec,
+    index: usize,
+    r: &RunSpec,
+    threads: usize,
+    out: &Path,
+) -> CliResult<RunResult> {
+    let g = &job.grid;
+    let grid = Grid::new(
+        job.energy,
+        g.n_q2,
+        g.n_p2,
+        g.q2_range,
+        g.p2_range,
+        (g.tile_q2, g.tile_p2),
+    );
+    let mode = match g.mode {
+        SpecMode::FastPss => Mode::FastPss,
+        SpecMode::Full => Mode::Full,
+    };
+    let config = OrbitConfig {
+        tau: r.tau,
+        t_final: r.t_final,
+        thresholds: job.thresholds,
+        deviation: job.deviation,
+        escape_radius: None,
+    };
+    let cell_run = CellRun {
+        run: MethodRun {
+            method: r.method.clone(),
+            delta: r.delta,
+            protocol: job.protocol,
+        },
+        config,
+        checkpoints_per_decade: if mode == Mode::Full {
+            CHECKPOINTS_PER_DECADE
+        } else {
+            0
+        },
+    };
+    // Fast PSS speculates at most one batch per thread ahead of the ledger; full mode never
+    // drops work, so it takes large windows.
+    let window = match mode {
+        Mode::FastPss => threads * salient_grid::executor::LANES,
+        Mode::Full => threads * 64,
+    };
+    let label = format!(
+        "[{}/{}] {}",
+        index + 1,
+        job.runs.len(),
+        run_dir_name(index, r)
+    );
+    let compatible = grid.compatible_count() as u64;
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let b = ProgressBar::new(compatible);
+        b.set_style(
+            ProgressStyle::with_template(
+                "{prefix} {bar:30} {pos}/{len} cells  {msg}  {elapsed_precise} ETA {eta}",
+            )
+            .expect("template"),
+        );
+        b.set_prefix(label.clone());
+        b
+    });
+    let cpu0 = process_cpu_seconds();
+    let start = Instant::now();
+    let mut last_log = Instant::now();
+    let ledger = run_embedded(&grid, &cell_run, mode, window, |l| {
+        let resolved = l.resolved() as u64;
+        let orbits = l.committed.len();
+        let rate = orbits as f64 / start.elapsed().as_secs_f64().max(1e-9);
+        if let Some(b) = &bar {
+            b.set_position(resolved);
+            b.set_message(format!(
+                "{orbits} orbits, {rate:.0}/s, {} dropped",
+                l.dropped
+            ));
+        } else if last_log.elapsed() >= Duration::from_secs(5) {
+            last_log = Instant::now();
+            tracing::info!(run = %label, resolved, compatible, orbits, orbits_per_s = rate, dropped = l.dropped, "progress");
+        }
+    });
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    let wall_s = start.elapsed().as_secs_f64();
+    let cpu_s = process_cpu_seconds() - cpu0;
+    let counts = Counts::of(&grid, &ledger);
+    let checkpoints = checkpoint_percentages(&grid, &ledger, &cell_run);
+    let dir = out.join(run_dir_name(index, r));
+    tracing::info!(run = %label, wall_s, orbits = ledger.committed.len(), "done");
+    Ok(RunResult {
+        spec: r.clone(),
+        grid,
+        ledger,
+        counts,
+        cpu_s,
+        wall_s,
+        dir,
+        checkpoints,
+    })
+}
+
+/// Percentages at each checkpoint of a full-mode run (every cell holds its own orbit).
+fn checkpoint_percentages(
+    grid: &Grid,
+    ledger: &Ledger,
+    cell_run: &CellRun,
+) -> Vec<(f64, f64, f64, f64)> {
+    if ledger.mode() != Mode::Full || cell_run.checkpoints_per_decade == 0 {
+        return Vec::new();
+    }
+    let steps = cell_run.checkpoint_steps();
+    let n = grid.compatible_count() as f64;
+    steps
+        .iter()
+        .enumerate()
+        .map(|(k, &s)| {
+            let (mut r, mut st, mut c) = (0u64, 0u64, 0u64);
+            for o in &ledger.committed {
+                match o.checkpoints.get(k).copied().flatten() {
+                    Some(Class::Regular) => r += 1,
+                    Some(Class::Sticky) => st += 1,
+                    Some(Class::Chaotic) => c += 1,
+                    None => {}
+                }
+            }
+            let pct = |x: u64| 100.0 * x as f64 / n;
+            (s as f64 * cell_run.config.tau, pct(r), pct(st), pct(c))
+        })
+        .collect()
+}
+
+fn class_str(class: Option<Class>) -> &'static str {
+    class.map_or("none", |c| c.as_str())
+}
+
+fn write_file(path: &Path, text: &str) -> CliResult<()> {
+    std::fs::write(path, text).map_err(|e| runtime(&format!("writing {}", path.display()), e))
+}
+
+/// cells.csv, class.npy, sali.npy, map.png and run.json of one run.
+fn write_run(job: &JobSpec, r: &RunResult) -> CliResult<()> {
+    let dir = &r.dir;
+    std::fs::create_dir_all(dir).map_err(|e| runtime(&format!("creating {}", dir.display()), e))?;
+    let g = &r.grid;
+    let mut csv = String::from("i,j,q2,p2,sali,class,status,label_source\n");
+    let mut class_codes = vec![0u8; g.cells()];
+    let mut sali = vec![f64::NAN; g.cells()];
+    for cell in 0..g.cells() as u32 {
+        if !g.is_compatible(cell) {
+            continue;
+        }
+        let l = r
+            .ledger
+            .label(cell)
+            .expect("every compatible cell is labelled");
+        let (i, j) = g.ij(cell);
+        let (q2, p2) = g.centre(cell);
+        let _ = writeln!(
+            csv,
+            "{i},{j},{q2},{p2},{},{},{},{}",
+            l.sali,
+            class_str(l.class),
+            l.status.as_str(),
+            l.source
+        );
+        class_codes[cell as usize] = match l.class {
+            Some(Class::Regular) => 1,
+            Some(Class::Sticky) => 2,
+            Some(Class::Chaotic) => 3,
+            None => 4,
+        };
+        sali[cell as usize] = l.sali;
+    }
+    write_file(&dir.join("cells.csv"), &csv)?;
+    let shape = [g.n_q2, g.n_p2];
+    write_npy_u8(&dir.join("class.npy"), &shape, &class_codes)
+        .map_err(|e| runtime("writing class.npy", e))?;
+    write_npy_f64(&dir.join("sali.npy"), &shape, &sali)
+        .map_err(|e| runtime("writing sali.npy", e))?;
+    // log10 SALI in grey like the paper's Fig. 1: black at 1e-16 (chaotic), white at 1.
+    let log_sali: Vec<f64> = sali
+        .iter()
+        .map(|s| {
+            if s.is_nan() {
+                f64::NAN
+            } else {
+                s.max(1e-16).log10()
+            }
+        })
+        .collect();
+    let title = format!(
+        "log10 SALI — {}",
+        run_dir_name(0, &r.spec)
+            .split_once('-')
+            .map_or("", |(_, b)| b)
+    );
+    render_grey_map_png(
+        &log_sali,
+        g.n_q2,
+        g.n_p2,
+        g.q2,
+        g.p2,
+        -16.0,
+        0.0,
+        &title,
+        "q2",
+        "p2",
+        &dir.join("map.png"),
+    )
+    .map_err(|e| runtime("plotting map.png", e))?;
+    let mut run = run_json(r);
+    run["spec"] = job.source.clone();
+    run["versions"] = json!({ "salient": env!("CARGO_PKG_VERSION") });
+    run["checkpoints"] = json!(r
+        .checkpoints
+        .iter()
+        .map(|&(t, a, b, c)| json!({"t": t, "regular": a, "sticky": b, "chaotic": c}))
+        .collect::<Vec<_>>());
+    write_file(
+        &dir.join("run.json"),
+        &(serde_json::to_string_pretty(&run).expect("JSON") + "\n"),
+    )
+}
+
+fn run_json(r: &RunResult) -> Value {
+    let c = &r.counts;
+    let (reg, st, ch) = c.percent();
+    json!({
+        "method": r.spec.method.name(),
+        "tau": r.spec.tau,
+        "delta": r.spec.delta,
+        "t_final": r.spec.t_final,
+        "mode": match r.ledger.mode() { Mode::FastPss => "fast-pss", Mode::Full => "full" },
+        "cells": [r.grid.n_q2, r.grid.n_p2],
+        "compatible": c.compatible,
+        "percent": { "regular": reg, "sticky": st, "chaotic": ch, "unclassified": c.percent_unclassified() },
+        "counts": { "regular": c.regular, "sticky": c.sticky, "chaotic": c.chaotic, "unclassified": c.unclassified },
+        "status_counts": c.status,
+        "orbits_integrated": r.ledger.committed.len(),
+        "orbits_dropped": r.ledger.dropped,
+        "steps_total": r.ledger.committed_steps + r.ledger.dropped_steps,
+        "steps_dropped": r.ledger.dropped_steps,
+        "cpu_s": r.cpu_s,
+        "wall_s": r.wall_s,
+        "out_dir": r.dir.display().to_string(),
+    })
+}
+
+fn sweep_table(results: &[RunResult]) -> Table {
+    let mut t = Table::new(&[
+        "tau",
+        "t_final",
+        "method",
+        "delta",
+        "% regular",
+        "% sticky",
+        "% chaotic",
+        "orbits",
+        "dropped",
+        "CPU s",
+        "wall s",
+    ]);
+    for r in results {
+        let (a, b, c) = r.counts.percent();
+        t.push(vec![
+            format!("{}", r.spec.tau),
+            format!("{:e}", r.spec.t_final),
+            r.spec.method.name(),
+            r.spec.delta.map_or("—".into(), |d| format!("{d:e}")),
+            format!("{a:.2}"),
+            format!("{b:.2}"),
+            format!("{c:.2}"),
+            r.ledger.committed.len().to_string(),
+            r.ledger.dropped.to_string(),
+            format!("{:.2}", r.cpu_s),
+            format!("{:.2}", r.wall_s),
+        ]);
+    }
+    t
+}
+
+/// Fig. 7: full-mode percentages at checkpoints against t, and fast-PSS runs at their t_final.
+fn plot_percent_vs_t(results: &[RunResult], path: &Path) -> CliResult<()> {
+    let mut series: Vec<(String, Vec<f64>, Vec<f64>)> = Vec::new();
+    for r in results.iter().filter(|r| !r.checkpoints.is_empty()) {
+        let t: Vec<f64> = r.checkpoints.iter().map(|c| c.0).collect();
+        let name = format!("{} τ={}", r.spec.method.name(), r.spec.tau);
+        series.push((
+            format!("full {name}: regular"),
+            t.clone(),
+            r.checkpoints.iter().map(|c| c.1).collect(),
+        ));
+        series.push((
+            format!("full {name}: chaotic"),
+            t.clone(),
+            r.checkpoints.iter().map(|c| c.3).collect(),
+        ));
+        series.push((
+            format!("full {name}: sticky"),
+            t,
+            r.checkpoints.iter().map(|c| c.2).collect(),
+        ));
+    }
+    let fast: Vec<&RunResult> = results
+        .iter()
+        .filter(|r| r.ledger.mode() == Mode::FastPss)
+        .collect();
+    if !fast.is_empty() {
+        let t: Vec<f64> = fast.iter().map(|r| r.spec.t_final).collect();
+        series.push((
+            "fast PSS: regular".into(),
+            t.clone(),
+            fast.iter().map(|r| r.counts.percent().0).collect(),
+        ));
+        series.push((
+            "fast PSS: chaotic".into(),
+            t.clone(),
+            fast.iter().map(|r| r.counts.percent().2).collect(),
+        ));
+        series.push((
+            "fast PSS: sticky".into(),
+            t,
+            fast.iter().map(|r| r.counts.percent().1).collect(),
+        ));
+    }
+    let plot = LogLogPlot {
+        title: "percent of compatible cells against t_final",
+        x_label: "t",
+        y_label: "% of cells",
+        lines: series
+            .iter()
+            .map(|(l, x, y)| Line {
+                label: l,
+                xs: x,
+                ys: y,
+            })
+            .collect(),
+        hlines: Vec::new(),
+        point_labels: Vec::new(),
+        markers: true,
+    };
+    render_loglog_png(&plot, path, 1200, 800).map_err(|e| runtime("plotting percent_vs_t.png", e))
+}

@@ -1,0 +1,230 @@
+//! `salient run` end to end: determinism across threads, the output contract, full mode's
+//! checkpoints, and bad specs.
+
+use salient_tests::{json_stdout, salient};
+use std::path::Path;
+
+const SMALL: &str = r#"
+name = "small"
+[system]
+kind = "henon-heiles"
+energy = 0.125
+[grid]
+cells = [40, 40]
+tile = [10, 10]
+mode = "fast-pss"
+[sweep]
+method = ["tm-sbab2c"]
+tau = [0.5]
+t_final = [2e3]
+"#;
+
+fn write_spec(dir: &Path, name: &str, text: &str) -> String {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p.to_str().unwrap().to_string()
+}
+
+fn run_dir(out: &Path) -> std::path::PathBuf {
+    let mut dirs: Vec<_> = std::fs::read_dir(out)
+        .unwrap()
+        .flatten()
+        .filter(|e| e.path().is_dir())
+        .map(|e| e.path())
+        .collect();
+    dirs.sort();
+    dirs.remove(0)
+}
+
+#[test]
+fn cells_csv_is_byte_identical_for_one_and_two_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = write_spec(dir.path(), "s.toml", SMALL);
+    let mut csv = Vec::new();
+    for threads in ["1", "2"] {
+        let out = dir.path().join(format!("out{threads}"));
+        let o = salient(&[
+            "run",
+            &spec,
+            "--threads",
+            threads,
+            "--out",
+            out.to_str().unwrap(),
+            "--json",
+        ]);
+        json_stdout(&o);
+        csv.push(std::fs::read(run_dir(&out).join("cells.csv")).unwrap());
+    }
+    assert!(csv[0].len() > 1000);
+    assert_eq!(csv[0], csv[1]);
+}
+
+#[test]
+fn run_writes_the_contract_and_never_lists_incompatible_cells() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = write_spec(dir.path(), "s.toml", SMALL);
+    let out = dir.path().join("out");
+    let v = json_stdout(&salient(&[
+        "run",
+        &spec,
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]));
+    let r = &v["runs"][0];
+    for key in [
+        "method",
+        "tau",
+        "delta",
+        "t_final",
+        "mode",
+        "cells",
+        "compatible",
+        "percent",
+        "counts",
+        "orbits_integrated",
+        "orbits_dropped",
+        "steps_total",
+        "cpu_s",
+        "wall_s",
+        "out_dir",
+    ] {
+        assert!(r.get(key).is_some(), "{key} missing: {r}");
+    }
+    assert_eq!(r["mode"], "fast-pss");
+    assert_eq!(r["cells"], serde_json::json!([40, 40]));
+    let p = &r["percent"];
+    let total = p["regular"].as_f64().unwrap()
+        + p["sticky"].as_f64().unwrap()
+        + p["chaotic"].as_f64().unwrap();
+    assert!((total - 100.0).abs() < 1e-9);
+    let run = run_dir(&out);
+    for f in ["cells.csv", "class.npy", "sali.npy", "map.png", "run.json"] {
+        assert!(run.join(f).exists(), "{f}");
+    }
+    for f in ["table.md", "table.csv", "table.json"] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    let csv = std::fs::read_to_string(run.join("cells.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next().unwrap(),
+        "i,j,q2,p2,sali,class,status,label_source"
+    );
+    let mut rows = 0;
+    for l in lines {
+        let f: Vec<&str> = l.split(',').collect();
+        let (q2, p2): (f64, f64) = (f[2].parse().unwrap(), f[3].parse().unwrap());
+        let radicand = 0.25 - p2 * p2 - q2 * q2 + 2.0 * q2 * q2 * q2 / 3.0;
+        assert!(radicand > 0.0, "incompatible cell listed: {l}");
+        assert!(["regular", "sticky", "chaotic"].contains(&f[5]), "{l}");
+        rows += 1;
+    }
+    assert_eq!(rows as u64, r["compatible"].as_u64().unwrap());
+    let npy = std::fs::read(run.join("sali.npy")).unwrap();
+    assert!(npy.starts_with(b"\x93NUMPY"));
+    assert_eq!(npy.len() % 16, (128 + 40 * 40 * 8) % 16);
+}
+
+#[test]
+fn full_mode_reports_checkpoints_and_plots_percent_against_t() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = write_spec(
+        dir.path(),
+        "f.toml",
+        &SMALL
+            .replace("fast-pss", "full")
+            .replace("[40, 40]", "[16, 16]")
+            .replace("[10, 10]", "[8, 8]"),
+    );
+    let out = dir.path().join("out");
+    let v = json_stdout(&salient(&[
+        "run",
+        &spec,
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]));
+    assert_eq!(v["runs"][0]["orbits_dropped"], 0);
+    assert_eq!(
+        v["runs"][0]["orbits_integrated"],
+        v["runs"][0]["compatible"]
+    );
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run_dir(&out).join("run.json")).unwrap())
+            .unwrap();
+    let cps = run["checkpoints"].as_array().unwrap();
+    assert!(cps.len() >= 8);
+    // Classes only move towards chaos as t grows: the chaotic share never falls.
+    let chaotic: Vec<f64> = cps.iter().map(|c| c["chaotic"].as_f64().unwrap()).collect();
+    assert!(
+        chaotic.windows(2).all(|w| w[1] >= w[0] - 1e-9),
+        "{chaotic:?}"
+    );
+    let last = cps.last().unwrap();
+    assert_eq!(last["t"], 2e3);
+    assert!(
+        (last["chaotic"].as_f64().unwrap() - v["runs"][0]["percent"]["chaotic"].as_f64().unwrap())
+            .abs()
+            < 1e-9
+    );
+    assert!(out.join("percent_vs_t.png").exists());
+}
+
+#[test]
+fn bad_specs_exit_2_naming_the_field_and_write_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases: &[(&str, &str, &str)] = &[
+        ("tau = [0.5]", "tau = [-0.5]", "sweep.tau"),
+        ("tau = [0.5]", "tau = [nan]", "sweep.tau"),
+        ("tau = [0.5]", "tau = []", "sweep.tau"),
+        ("t_final = [2e3]", "t_final = [0.1]", "sweep.t_final"),
+        (
+            "method = [\"tm-sbab2c\"]",
+            "method = [\"rk4\"]",
+            "sweep.method",
+        ),
+        (
+            "method = [\"tm-sbab2c\"]",
+            "method = [\"dop853\"]\ndelta = [-1e-5]",
+            "sweep.delta",
+        ),
+        ("energy = 0.125", "energy = 0.3", "system.energy"),
+        (
+            "kind = \"henon-heiles\"",
+            "kind = \"lorenz\"",
+            "system.kind",
+        ),
+        ("cells = [40, 40]", "cells = [0, 40]", "grid.cells"),
+        ("tile = [10, 10]", "tile = [50, 10]", "grid.tile"),
+        (
+            "mode = \"fast-pss\"",
+            "mode = \"fast-pss\"\nq2 = [-0.9, 0.5]",
+            "grid.q2",
+        ),
+        ("mode = \"fast-pss\"", "mode = \"fastest\"", "mode"),
+        ("[grid]", "[grid]\ncolour = 3", "colour"),
+    ];
+    for (i, (from, to, field)) in cases.iter().enumerate() {
+        assert!(SMALL.contains(from), "{from}");
+        let spec = write_spec(
+            dir.path(),
+            &format!("bad{i}.toml"),
+            &SMALL.replacen(from, to, 1),
+        );
+        let out = dir.path().join(format!("never{i}"));
+        let o = salient(&["run", &spec, "--out", out.to_str().unwrap()]);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{to}: {stderr}");
+        assert_eq!(stderr.trim().lines().count(), 1, "{to}: {stderr}");
+        assert!(
+            stderr.contains(field),
+            "{to}: message does not name {field}: {stderr}"
+        );
+        assert!(!out.exists(), "{to}: wrote output");
+    }
+    let spec = write_spec(dir.path(), "ok.toml", SMALL);
+    let o = salient(&["run", &spec, "--threads", "0"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--threads"));
+}
