@@ -8,6 +8,7 @@ mod spec;
 mod usage;
 
 use clap::{Parser, Subcommand};
+use std::io::IsTerminal;
 use std::process::ExitCode;
 
 #[derive(Parser)]
@@ -42,7 +43,8 @@ fn main() -> ExitCode {
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
-        .with_target(false);
+        .with_target(false)
+        .with_ansi(std::io::stderr().is_terminal());
     if std::env::var("SALIENT_LOG_FORMAT").as_deref() == Ok("json") {
         builder.json().init();
     } else {
