@@ -71,6 +71,39 @@ pub fn integrate_batch<H: Hamiltonian<N>, const N: usize, const K: usize, const 
     ics: &[([f64; N], [f64; N])],
     config: &OrbitConfig,
     requests: &Requests,
+    sink: impl FnMut(usize, OrbitResult<N>),
+) {
+    integrate_batch_with::<H, N, K, L>(map, ics, config, requests, &NoHooks, sink)
+}
+
+/// Lets a caller watch crossings as they are found and abandon orbits whose results it no
+/// longer needs (the fast-PSS engine abandons orbits whose cell is certain to be labelled by
+/// another). Hooks never change the results of the orbits that complete.
+pub trait BatchHooks<const N: usize>: Sync {
+    /// Called for every upward crossing of orbit `ic` when it is located.
+    fn on_crossing(&self, _ic: usize, _crossing: &crate::section::Crossing<N>) {}
+    /// Polled every [`CANCEL_POLL`] steps: true abandons orbit `ic` (no result is reported).
+    fn cancelled(&self, _ic: usize) -> bool {
+        false
+    }
+    /// Called when orbit `ic` is abandoned after `steps` steps.
+    fn abandoned(&self, _ic: usize, _steps: u64) {}
+}
+
+/// No hooks.
+pub struct NoHooks;
+impl<const N: usize> BatchHooks<N> for NoHooks {}
+
+/// Steps between polls of [`BatchHooks::cancelled`].
+pub const CANCEL_POLL: u64 = 64;
+
+/// [`integrate_batch`] with hooks; abandoned orbits are not handed to `sink`.
+pub fn integrate_batch_with<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
+    map: &TangentMap<'_, H>,
+    ics: &[([f64; N], [f64; N])],
+    config: &OrbitConfig,
+    requests: &Requests,
+    hooks: &dyn BatchHooks<N>,
     mut sink: impl FnMut(usize, OrbitResult<N>),
 ) {
     assert_eq!(
@@ -154,14 +187,29 @@ pub fn integrate_batch<H: Hamiltonian<N>, const N: usize, const K: usize, const 
             f |= early & (c.0[l] * c.0[l] >= n2[0].0[l] * n2[1].0[l] * factor);
             flagged[l] = f & active[l];
         }
+        if n[0] % CANCEL_POLL == 0 {
+            for l in 0..L {
+                if let Some(j) = jobs[l].as_ref().filter(|j| hooks.cancelled(j.index)) {
+                    hooks.abandoned(j.index, n[l]);
+                    jobs[l] = load(l, &mut next, &mut x, &mut inc);
+                    active[l] = jobs[l].is_some();
+                    flagged[l] = false;
+                    n[l] = 0;
+                }
+            }
+        }
         for l in (0..L).filter(|&l| flagged[l]) {
             let job = jobs[l].as_mut().expect("flagged lanes are active");
+            let crossings_before = job.result.crossings.len();
             let (mut sx, mut sinc) = get_lane(&x, &inc, l);
             let qp: [f64; N] = core::array::from_fn(|i| q_prev[i].0[l]);
             let pp: [f64; N] = core::array::from_fn(|i| p_prev[i].0[l]);
             let stop =
                 job.tracker
                     .after_step(map, n[l], &qp, &pp, &mut sx, &mut sinc, &mut job.result);
+            for c in &job.result.crossings[crossings_before..] {
+                hooks.on_crossing(job.index, c);
+            }
             if stop || n[l] == n_final {
                 let mut j = jobs[l].take().expect("active");
                 j.tracker.finish(n[l], &sx, &mut j.result);

@@ -7,7 +7,9 @@
 use crate::geometry::Grid;
 use crate::ledger::{Ledger, Mode, Outcome};
 use rayon::prelude::*;
-use salient_core::batch::integrate_batch;
+use salient_core::batch::{integrate_batch, integrate_batch_with, BatchHooks};
+use salient_core::section::Crossing;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
@@ -78,8 +80,71 @@ fn outcome(
     }
 }
 
+/// Cells the frontier orbit has crossed while it runs. The frontier orbit (the first cell the
+/// ledger still needs) is certain to commit, so every cell it crosses is certain to be
+/// labelled by it: orbits started from such cells are abandoned at once instead of being
+/// integrated to the end and dropped.
+pub struct FrontierClaims {
+    frontier: u32,
+    claimed: Vec<AtomicBool>,
+    abandoned: AtomicU64,
+    abandoned_steps: AtomicU64,
+}
+
+impl FrontierClaims {
+    pub fn new(grid: &Grid, frontier: u32) -> Self {
+        FrontierClaims {
+            frontier,
+            claimed: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+            abandoned: AtomicU64::new(0),
+            abandoned_steps: AtomicU64::new(0),
+        }
+    }
+
+    /// Orbits abandoned and the steps they had taken.
+    pub fn abandoned(&self) -> (u64, u64) {
+        (self.abandoned.load(Ordering::Relaxed), self.abandoned_steps.load(Ordering::Relaxed))
+    }
+}
+
+struct ChunkHooks<'a> {
+    grid: &'a Grid,
+    chunk: &'a [u32],
+    claims: &'a FrontierClaims,
+}
+
+impl BatchHooks<2> for ChunkHooks<'_> {
+    fn on_crossing(&self, ic: usize, c: &Crossing<2>) {
+        if self.chunk[ic] == self.claims.frontier {
+            if let Some(cell) = self.grid.cell_of(c.q[1], c.p[1]) {
+                self.claims.claimed[cell as usize].store(true, Ordering::Relaxed);
+            }
+        }
+    }
+    fn cancelled(&self, ic: usize) -> bool {
+        let cell = self.chunk[ic];
+        cell != self.claims.frontier && self.claims.claimed[cell as usize].load(Ordering::Relaxed)
+    }
+    fn abandoned(&self, _ic: usize, steps: u64) {
+        self.claims.abandoned.fetch_add(1, Ordering::Relaxed);
+        self.claims.abandoned_steps.fetch_add(steps, Ordering::Relaxed);
+    }
+}
+
 /// Integrates `cells` (compatible cells of `grid`) and returns their outcomes in the same order.
 pub fn integrate_cells(grid: &Grid, cell_run: &CellRun, mode: Mode, cells: &[u32]) -> Vec<Outcome> {
+    integrate_cells_with(grid, cell_run, mode, cells, None)
+}
+
+/// [`integrate_cells`], abandoning orbits the frontier orbit claims; abandoned cells get no
+/// outcome.
+pub fn integrate_cells_with(
+    grid: &Grid,
+    cell_run: &CellRun,
+    mode: Mode,
+    cells: &[u32],
+    claims: Option<&FrontierClaims>,
+) -> Vec<Outcome> {
     let ham = HenonHeiles;
     let requests = Requests {
         crossings: mode == Mode::FastPss,
@@ -99,16 +164,19 @@ pub fn integrate_cells(grid: &Grid, cell_run: &CellRun, mode: Mode, cells: &[u32
                 .flat_map_iter(|chunk| {
                     let ics: Vec<_> = chunk.iter().map(|&c| ic(c)).collect();
                     let mut out: Vec<Option<Outcome>> = vec![None; chunk.len()];
-                    integrate_batch::<_, 2, 2, LANES>(
-                        &map,
-                        &ics,
-                        &cell_run.config,
-                        &requests,
-                        |i, r| {
-                            out[i] = Some(outcome(grid, cell_run, &checkpoints, chunk[i], &r));
-                        },
-                    );
-                    out.into_iter().map(|o| o.expect("every orbit reported"))
+                    let sink = |i: usize, r: OrbitResult<2>| {
+                        out[i] = Some(outcome(grid, cell_run, &checkpoints, chunk[i], &r));
+                    };
+                    let config = &cell_run.config;
+                    match claims {
+                        Some(claims) => {
+                            let hooks = ChunkHooks { grid, chunk, claims };
+                            integrate_batch_with::<_, 2, 2, LANES>(&map, &ics, config, &requests, &hooks, sink)
+                        }
+                        None => integrate_batch::<_, 2, 2, LANES>(&map, &ics, config, &requests, sink),
+                    }
+                    // Abandoned orbits report nothing.
+                    out.into_iter().flatten()
                 })
                 .collect()
         }
@@ -144,8 +212,13 @@ pub fn run_embedded(
     let mut ledger = Ledger::new(grid, mode);
     while !ledger.done() {
         let cells = ledger.needed(window.max(1), &|_| false);
-        for o in integrate_cells(grid, cell_run, mode, &cells) {
+        let claims = (mode == Mode::FastPss).then(|| FrontierClaims::new(grid, cells[0]));
+        for o in integrate_cells_with(grid, cell_run, mode, &cells, claims.as_ref()) {
             ledger.offer(o);
+        }
+        if let Some(c) = claims {
+            let (n, steps) = c.abandoned();
+            ledger.record_abandoned(n, steps);
         }
         progress(&ledger);
     }

@@ -125,6 +125,13 @@ impl Ledger {
             .collect()
     }
 
+    /// Counts speculative orbits abandoned before they finished (their cell was certain to be
+    /// labelled by an earlier orbit) with the steps they had taken.
+    pub fn record_abandoned(&mut self, orbits: u64, steps: u64) {
+        self.dropped += orbits;
+        self.dropped_steps += steps;
+    }
+
     /// Accepts an outcome (any order) and commits whatever the canonical order now allows.
     pub fn offer(&mut self, outcome: Outcome) {
         let pos = self.position[outcome.cell as usize];
