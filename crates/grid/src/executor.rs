@@ -8,15 +8,17 @@ use crate::geometry::Grid;
 use crate::ledger::{Ledger, Mode, Outcome};
 use rayon::prelude::*;
 use salient_core::batch::{integrate_batch, integrate_batch_with, BatchHooks};
-use salient_core::section::Crossing;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
 };
 use salient_core::run::{run_orbit, MethodRun};
 use salient_core::section::on_section;
+use salient_core::section::Crossing;
 use salient_core::{HenonHeiles, TangentMap};
+use std::collections::HashSet;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::Mutex;
 
 /// Orbits advanced together in one batched stepper.
 pub const LANES: usize = 4;
@@ -80,54 +82,79 @@ fn outcome(
     }
 }
 
-/// Cells the frontier orbit has crossed while it runs. The frontier orbit (the first cell the
-/// ledger still needs) is certain to commit, so every cell it crosses is certain to be
-/// labelled by it: orbits started from such cells are abandoned at once instead of being
-/// integrated to the end and dropped.
-pub struct FrontierClaims {
-    frontier: u32,
+/// What the fast-PSS engine knows for certain while orbits run: cells already labelled, and
+/// cells crossed by the frontier orbit — the first cell the ledger still needs, whose orbit is
+/// certain to commit, so every cell it crosses is certain to be labelled by it. Orbits started
+/// from such cells are abandoned at once instead of being integrated to the end and dropped.
+pub struct Claims {
+    frontier: AtomicUsize,
+    position: Vec<u32>,
     claimed: Vec<AtomicBool>,
     abandoned: AtomicU64,
     abandoned_steps: AtomicU64,
 }
 
-impl FrontierClaims {
-    pub fn new(grid: &Grid, frontier: u32) -> Self {
-        FrontierClaims {
-            frontier,
+impl Claims {
+    pub fn new(grid: &Grid) -> Self {
+        Claims {
+            frontier: AtomicUsize::new(0),
+            position: (0..grid.cells() as u32)
+                .map(|c| grid.position(c).map_or(u32::MAX, |p| p as u32))
+                .collect(),
             claimed: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
             abandoned: AtomicU64::new(0),
             abandoned_steps: AtomicU64::new(0),
         }
     }
 
+    /// Brings the claims up to date with the ledger (call with the ledger locked).
+    pub fn sync(&self, ledger: &mut Ledger) {
+        for c in ledger.take_newly_labelled() {
+            self.claimed[c as usize].store(true, Ordering::Relaxed);
+        }
+        self.frontier.store(ledger.frontier(), Ordering::Relaxed);
+    }
+
+    fn is_frontier(&self, cell: u32) -> bool {
+        self.position[cell as usize] as usize == self.frontier.load(Ordering::Relaxed)
+    }
+
+    /// Whether the cell is certain to be labelled by another orbit.
+    pub fn is_claimed(&self, cell: u32) -> bool {
+        self.claimed[cell as usize].load(Ordering::Relaxed) && !self.is_frontier(cell)
+    }
+
     /// Orbits abandoned and the steps they had taken.
     pub fn abandoned(&self) -> (u64, u64) {
-        (self.abandoned.load(Ordering::Relaxed), self.abandoned_steps.load(Ordering::Relaxed))
+        (
+            self.abandoned.load(Ordering::Relaxed),
+            self.abandoned_steps.load(Ordering::Relaxed),
+        )
     }
 }
 
 struct ChunkHooks<'a> {
     grid: &'a Grid,
     chunk: &'a [u32],
-    claims: &'a FrontierClaims,
+    claims: &'a Claims,
 }
 
 impl BatchHooks<2> for ChunkHooks<'_> {
     fn on_crossing(&self, ic: usize, c: &Crossing<2>) {
-        if self.chunk[ic] == self.claims.frontier {
+        if self.claims.is_frontier(self.chunk[ic]) {
             if let Some(cell) = self.grid.cell_of(c.q[1], c.p[1]) {
                 self.claims.claimed[cell as usize].store(true, Ordering::Relaxed);
             }
         }
     }
     fn cancelled(&self, ic: usize) -> bool {
-        let cell = self.chunk[ic];
-        cell != self.claims.frontier && self.claims.claimed[cell as usize].load(Ordering::Relaxed)
+        self.claims.is_claimed(self.chunk[ic])
     }
     fn abandoned(&self, _ic: usize, steps: u64) {
         self.claims.abandoned.fetch_add(1, Ordering::Relaxed);
-        self.claims.abandoned_steps.fetch_add(steps, Ordering::Relaxed);
+        self.claims
+            .abandoned_steps
+            .fetch_add(steps, Ordering::Relaxed);
     }
 }
 
@@ -143,7 +170,7 @@ pub fn integrate_cells_with(
     cell_run: &CellRun,
     mode: Mode,
     cells: &[u32],
-    claims: Option<&FrontierClaims>,
+    claims: Option<&Claims>,
 ) -> Vec<Outcome> {
     let ham = HenonHeiles;
     let requests = Requests {
@@ -170,10 +197,18 @@ pub fn integrate_cells_with(
                     let config = &cell_run.config;
                     match claims {
                         Some(claims) => {
-                            let hooks = ChunkHooks { grid, chunk, claims };
-                            integrate_batch_with::<_, 2, 2, LANES>(&map, &ics, config, &requests, &hooks, sink)
+                            let hooks = ChunkHooks {
+                                grid,
+                                chunk,
+                                claims,
+                            };
+                            integrate_batch_with::<_, 2, 2, LANES>(
+                                &map, &ics, config, &requests, &hooks, sink,
+                            )
                         }
-                        None => integrate_batch::<_, 2, 2, LANES>(&map, &ics, config, &requests, sink),
+                        None => {
+                            integrate_batch::<_, 2, 2, LANES>(&map, &ics, config, &requests, sink)
+                        }
                     }
                     // Abandoned orbits report nothing.
                     out.into_iter().flatten()
@@ -199,28 +234,70 @@ pub fn integrate_cells_with(
     }
 }
 
-/// Runs a whole grid in this process: repeatedly integrates the next `window` cells the ledger
-/// needs (in parallel on the current rayon pool) and offers their outcomes, until every
-/// compatible cell is labelled. The window bounds the speculative work that commits may drop.
+/// Runs a whole grid in this process on the current rayon pool and returns the finished
+/// ledger. Fast PSS with a tangent-map method streams: every worker repeatedly takes the next
+/// `LANES` cells the ledger needs (skipping cells in flight or certain to be labelled),
+/// integrates them in the batched stepper, and offers the outcomes; orbits whose cell the
+/// frontier orbit crosses are abandoned. Speculation is thereby bounded by one batch per
+/// worker. Other runs go in rounds of `window` cells. Either way the labels are those of the
+/// sequential rule.
 pub fn run_embedded(
     grid: &Grid,
     cell_run: &CellRun,
     mode: Mode,
     window: usize,
-    mut progress: impl FnMut(&Ledger),
+    mut progress: impl FnMut(&Ledger) + Send,
 ) -> Ledger {
-    let mut ledger = Ledger::new(grid, mode);
-    while !ledger.done() {
-        let cells = ledger.needed(window.max(1), &|_| false);
-        let claims = (mode == Mode::FastPss).then(|| FrontierClaims::new(grid, cells[0]));
-        for o in integrate_cells_with(grid, cell_run, mode, &cells, claims.as_ref()) {
-            ledger.offer(o);
+    let streaming = mode == Mode::FastPss && matches!(cell_run.run.method, Method::TangentMap(_));
+    if !streaming {
+        let mut ledger = Ledger::new(grid, mode);
+        while !ledger.done() {
+            let cells = ledger.needed(window.max(1), &|_| false);
+            for o in integrate_cells(grid, cell_run, mode, &cells) {
+                ledger.offer(o);
+            }
+            progress(&ledger);
         }
-        if let Some(c) = claims {
-            let (n, steps) = c.abandoned();
-            ledger.record_abandoned(n, steps);
-        }
-        progress(&ledger);
+        return ledger;
     }
+    let claims = Claims::new(grid);
+    let shared = Mutex::new((Ledger::new(grid, mode), HashSet::<u32>::new(), progress));
+    let workers = rayon::current_num_threads();
+    rayon::scope(|s| {
+        for _ in 0..workers {
+            s.spawn(|_| loop {
+                let cells = {
+                    let mut g = shared.lock().expect("ledger lock");
+                    let (ledger, in_flight, _) = &mut *g;
+                    if ledger.done() {
+                        break;
+                    }
+                    let cells =
+                        ledger.needed(LANES, &|c| in_flight.contains(&c) || claims.is_claimed(c));
+                    in_flight.extend(&cells);
+                    cells
+                };
+                if cells.is_empty() {
+                    // Everything still needed is in flight elsewhere.
+                    std::thread::sleep(std::time::Duration::from_micros(50));
+                    continue;
+                }
+                let outcomes = integrate_cells_with(grid, cell_run, mode, &cells, Some(&claims));
+                let mut g = shared.lock().expect("ledger lock");
+                let (ledger, in_flight, progress) = &mut *g;
+                for o in outcomes {
+                    ledger.offer(o);
+                }
+                for c in &cells {
+                    in_flight.remove(c);
+                }
+                claims.sync(ledger);
+                progress(ledger);
+            });
+        }
+    });
+    let (mut ledger, _, _) = shared.into_inner().expect("ledger lock");
+    let (n, steps) = claims.abandoned();
+    ledger.record_abandoned(n, steps);
     ledger
 }

@@ -60,6 +60,8 @@ pub struct Ledger {
     pub dropped: u64,
     pub dropped_steps: u64,
     pub committed_steps: u64,
+    /// Cells labelled since the last [`Ledger::take_newly_labelled`].
+    newly_labelled: Vec<u32>,
 }
 
 impl Ledger {
@@ -79,6 +81,7 @@ impl Ledger {
             dropped: 0,
             dropped_steps: 0,
             committed_steps: 0,
+            newly_labelled: Vec::new(),
         }
     }
 
@@ -123,6 +126,11 @@ impl Ledger {
             })
             .take(count)
             .collect()
+    }
+
+    /// The cells labelled since the last call.
+    pub fn take_newly_labelled(&mut self) -> Vec<u32> {
+        std::mem::take(&mut self.newly_labelled)
     }
 
     /// Counts speculative orbits abandoned before they finished (their cell was certain to be
@@ -177,10 +185,12 @@ impl Ledger {
             source: o.cell,
         };
         self.labels[o.cell as usize] = Some(label);
+        self.newly_labelled.push(o.cell);
         if self.mode == Mode::FastPss {
             for &v in &o.visited {
                 if self.compatible[v as usize] && self.labels[v as usize].is_none() {
                     self.labels[v as usize] = Some(label);
+                    self.newly_labelled.push(v);
                 }
             }
         }
