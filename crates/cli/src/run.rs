@@ -393,6 +393,7 @@ fn sweep_table(results: &[RunResult]) -> Table {
         "% chaotic",
         "orbits",
         "dropped",
+        "% steps dropped",
         "CPU s",
         "wall s",
     ]);
@@ -408,6 +409,13 @@ fn sweep_table(results: &[RunResult]) -> Table {
             format!("{c:.2}"),
             r.ledger.committed.len().to_string(),
             r.ledger.dropped.to_string(),
+            {
+                let total = r.ledger.committed_steps + r.ledger.dropped_steps;
+                format!(
+                    "{:.1}",
+                    100.0 * r.ledger.dropped_steps as f64 / total.max(1) as f64
+                )
+            },
             format!("{:.2}", r.cpu_s),
             format!("{:.2}", r.wall_s),
         ]);
