@@ -18,7 +18,7 @@ use crate::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Sample, Status,
 };
 use crate::real::dot;
-use crate::section::Crossing;
+use crate::section::{bracketed_root, Crossing};
 use crate::tangent::Phase;
 use crate::taylor::{Scalar, Taylor, TaylorSeries};
 
@@ -281,38 +281,22 @@ impl<const K: usize> Books<'_, K> {
     }
 }
 
-/// Locates an upward crossing of q1 = 0 inside the last step from its dense output: Newton
-/// with dq1/dt = p1, kept inside a bisection bracket.
+/// Locates an upward crossing of q1 = 0 inside the last step from its dense output (Newton
+/// with dq1/dt = p1 inside a bisection bracket).
 fn locate_dense<I: AdaptiveIntegrator<N, K>, const N: usize, const K: usize>(
     integ: &I,
 ) -> Crossing<N> {
-    let (mut lo, mut hi) = (integ.t_prev(), integ.t());
-    let mut t = 0.5 * (lo + hi);
-    let mut y = integ.interpolate(t);
-    for _ in 0..100 {
-        let f = y.q[0];
-        if f == 0.0 {
-            break;
-        }
-        if f < 0.0 {
-            lo = t;
-        } else {
-            hi = t;
-        }
-        let newton = t - f / y.p[0];
-        let next = if y.p[0] > 0.0 && newton > lo && newton < hi {
-            newton
-        } else {
-            0.5 * (lo + hi)
-        };
-        let done = (next - t).abs() <= 4.0 * f64::EPSILON * hi.abs().max(1.0)
-            || hi - lo <= 4.0 * f64::EPSILON * hi.abs();
-        t = next;
-        y = integ.interpolate(t);
-        if done {
-            break;
-        }
-    }
+    let (lo, hi) = (integ.t_prev(), integ.t());
+    let (t, y) = bracketed_root(
+        lo,
+        hi,
+        0.5 * (lo + hi),
+        4.0 * f64::EPSILON * hi.abs().max(1.0),
+        |t| {
+            let y = integ.interpolate(t);
+            (y.q[0], y.p[0], y)
+        },
+    );
     Crossing { t, q: y.q, p: y.p }
 }
 

@@ -82,45 +82,57 @@ pub fn locate_upward<H: Hamiltonian<N>, const N: usize>(
     t: f64,
 ) -> Crossing<N> {
     let tau = map.tau();
-    let at = |h: f64| {
+    let start = if p[0] > 0.0 { -q[0] / p[0] } else { 0.5 * tau };
+    let (h, (qh, ph)) = bracketed_root(0.0, tau, start, 4.0 * f64::EPSILON * tau, |h| {
         let (mut qh, mut ph) = (*q, *p);
         map.orbit_step(&mut qh, &mut ph, h);
-        (qh, ph)
-    };
-    let (mut lo, mut hi) = (0.0, tau);
-    let mut h = if p[0] > 0.0 {
-        (-q[0] / p[0]).clamp(0.0, tau)
-    } else {
-        0.5 * tau
-    };
-    let (mut qh, mut ph) = at(h);
-    for _ in 0..100 {
-        let f = qh[0];
-        if f == 0.0 {
-            break;
-        }
-        if f < 0.0 {
-            lo = h;
-        } else {
-            hi = h;
-        }
-        let newton = h - f / ph[0];
-        let next = if ph[0] > 0.0 && newton > lo && newton < hi {
-            newton
-        } else {
-            0.5 * (lo + hi)
-        };
-        let done =
-            (next - h).abs() <= 4.0 * f64::EPSILON * tau || hi - lo <= 4.0 * f64::EPSILON * tau;
-        h = next;
-        (qh, ph) = at(h);
-        if done {
-            break;
-        }
-    }
+        (qh[0], ph[0], (qh, ph))
+    });
     Crossing {
         t: t + h,
         q: qh,
         p: ph,
     }
+}
+
+/// Finds s in [lo, hi] with g(s) = 0, given g(lo) < 0 ≤ g(hi). `eval(s)` returns g(s), g'(s)
+/// and whatever state the caller wants at s. Newton's method, kept inside a shrinking bisection
+/// bracket so a small or wrong-signed g' (a crossing nearly tangent to the section) never sends
+/// it astray. It stops once the Newton correction is below `tol` (callers pass a few ulps: g'
+/// may be only an approximation of the true derivative, as p1 is for a partial step of a
+/// splitting scheme, so convergence can be linear near the end) or when the bracket is
+/// exhausted, and returns s and the state there.
+pub(crate) fn bracketed_root<S>(
+    mut lo: f64,
+    mut hi: f64,
+    start: f64,
+    tol: f64,
+    eval: impl Fn(f64) -> (f64, f64, S),
+) -> (f64, S) {
+    let mut s = start.clamp(lo, hi);
+    let (mut g, mut dg, mut state) = eval(s);
+    for _ in 0..100 {
+        if g == 0.0 {
+            break;
+        }
+        if g < 0.0 {
+            lo = s;
+        } else {
+            hi = s;
+        }
+        let newton = s - g / dg;
+        let next = if dg > 0.0 && newton > lo && newton < hi {
+            newton
+        } else {
+            0.5 * (lo + hi)
+        };
+        let done =
+            (next - s).abs() <= tol || hi - lo <= 4.0 * f64::EPSILON * hi.abs().max(lo.abs());
+        s = next;
+        (g, dg, state) = eval(s);
+        if done {
+            break;
+        }
+    }
+    (s, state)
 }
