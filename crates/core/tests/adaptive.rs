@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{c1, dist, r1};
+use common::{c1, end_distance, r1, srkn14a_r1};
 use salient_core::adaptive::{integrate_adaptive, Dop853Orbit, Protocol};
 use salient_core::dop853::{Dop853, Dop853Config};
 use salient_core::orbit::{
@@ -80,13 +80,9 @@ fn both_protocols_give_the_same_sali_on_r1() {
 
 #[test]
 fn dop853_agrees_with_srkn14a_on_r1() {
-    let ham = HenonHeiles;
     let cfg = OrbitConfig::new(0.05, 100.0);
     let a = dop(r1(), 1e-13, Protocol::Restart, &cfg, &Requests::default());
-    let map = TangentMap::new(&ham, &Scheme::by_name("srkn14a").unwrap(), 1e-3);
-    let mut cfg_tm = OrbitConfig::new(1e-3, 100.0);
-    cfg_tm.thresholds = cfg.thresholds;
-    let b = integrate::<_, 2, 2>(&map, r1().0, r1().1, &cfg_tm, &Requests::default());
+    let b = srkn14a_r1(100.0, &Requests::default());
     assert!(
         (a.sali - b.sali).abs() < 1e-8,
         "SALI {} vs {}",
@@ -94,35 +90,7 @@ fn dop853_agrees_with_srkn14a_on_r1() {
         b.sali
     );
     assert!((a.mle - b.mle).abs() < 1e-8, "mLE {} vs {}", a.mle, b.mle);
-    // End states: integrate the orbits alone to compare positions.
-    let (dq, dp) = initial_vectors::<2, 2>(Deviation::Axes);
-    let mut d = Dop853::new(
-        &ham,
-        Dop853Config::with_delta(1e-13),
-        0.0,
-        Phase {
-            q: r1().0,
-            p: r1().1,
-            dq,
-            dp,
-        },
-    );
-    while d.t < 100.0 {
-        d.step(100.0, None).unwrap();
-    }
-    let mut s = salient_core::tangent::Stepping::new(
-        &map,
-        Phase::<f64, 2, 0> {
-            q: r1().0,
-            p: r1().1,
-            dq: [],
-            dp: [],
-        },
-    );
-    for _ in 0..100_000 {
-        s.advance();
-    }
-    let e = dist(&(d.y.q, d.y.p), &(s.x.q, s.x.p));
+    let e = end_distance(&a, &b);
     assert!(e < 1e-10, "end states differ by {e:e}");
 }
 
@@ -166,8 +134,7 @@ fn crossings_from_dense_output_match_the_tangent_map_ones() {
         &OrbitConfig::new(0.05, 100.0),
         &req,
     );
-    let map = TangentMap::new(&HenonHeiles, &Scheme::by_name("srkn14a").unwrap(), 1e-3);
-    let b = integrate::<_, 2, 2>(&map, r1().0, r1().1, &OrbitConfig::new(1e-3, 100.0), &req);
+    let b = srkn14a_r1(100.0, &req);
     assert_eq!(a.crossings.len(), b.crossings.len());
     for (x, y) in a.crossings.iter().zip(&b.crossings) {
         assert!(x.q[0].abs() < 1e-13 && x.p[0] > 0.0);

@@ -3,17 +3,15 @@
 
 mod common;
 
-use common::{c1, dist, r1};
+use common::{c1, end_distance, r1, srkn14a_r1};
 use salient_core::adaptive::{integrate_adaptive, Protocol, TaylorOrbit};
 use salient_core::dd::DoubleDouble;
 use salient_core::dop853::{rhs, Dop853, Dop853Config};
-use salient_core::orbit::{
-    initial_vectors, integrate, Class, OrbitConfig, OrbitResult, Requests, Status,
-};
+use salient_core::orbit::{initial_vectors, Class, OrbitConfig, OrbitResult, Requests, Status};
 use salient_core::real::Real;
-use salient_core::tangent::{Phase, Stepping};
+use salient_core::tangent::Phase;
 use salient_core::taylor::{Jet, Series, Taylor, TaylorSeries};
-use salient_core::{Deviation, Hamiltonian, HenonHeiles, Scheme, TangentMap};
+use salient_core::{Deviation, Hamiltonian, HenonHeiles};
 
 /// Constant force: V = g q, so q(t) = q0 + p0 t − g t²/2 exactly.
 struct Gravity;
@@ -146,14 +144,7 @@ fn both_protocols_agree_and_taylor_matches_srkn14a() {
     // heyoka at tol 1e-15 gives SALI(1e3) = 1.2535960837 (research note §4).
     assert!((a.sali - 1.253_596_083_7).abs() < 1e-8, "{}", a.sali);
     // End state and SALI at t = 100 against SRKN14a τ = 1e-3.
-    let map = TangentMap::new(&HenonHeiles, &Scheme::by_name("srkn14a").unwrap(), 1e-3);
-    let tm = integrate::<_, 2, 2>(
-        &map,
-        r1().0,
-        r1().1,
-        &OrbitConfig::new(1e-3, 100.0),
-        &Requests::default(),
-    );
+    let tm = srkn14a_r1(100.0, &Requests::default());
     let ty = taylor(
         r1(),
         1e-15,
@@ -167,23 +158,7 @@ fn both_protocols_agree_and_taylor_matches_srkn14a() {
         tm.sali,
         ty.sali
     );
-    let mut t = Taylor::new(&HenonHeiles, 1e-15, 0.0, start(r1()));
-    while t.t() < 100.0 {
-        t.step(100.0).unwrap();
-    }
-    let mut s = Stepping::new(
-        &map,
-        Phase::<f64, 2, 0> {
-            q: r1().0,
-            p: r1().1,
-            dq: [],
-            dp: [],
-        },
-    );
-    for _ in 0..100_000 {
-        s.advance();
-    }
-    let e = dist(&(t.y.q, t.y.p), &(s.x.q, s.x.p));
+    let e = end_distance(&tm, &ty);
     assert!(e < 1e-10, "end states differ by {e:e}");
 }
 
@@ -273,8 +248,7 @@ fn crossings_from_the_taylor_polynomial_match_srkn14a() {
         &OrbitConfig::new(0.05, 100.0),
         &req,
     );
-    let map = TangentMap::new(&HenonHeiles, &Scheme::by_name("srkn14a").unwrap(), 1e-3);
-    let b = integrate::<_, 2, 2>(&map, r1().0, r1().1, &OrbitConfig::new(1e-3, 100.0), &req);
+    let b = srkn14a_r1(100.0, &req);
     assert_eq!(a.crossings.len(), b.crossings.len());
     assert!(a.crossings.len() > 10);
     for (x, y) in a.crossings.iter().zip(&b.crossings) {

@@ -1,7 +1,8 @@
 #![allow(dead_code)]
 
+use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests};
 use salient_core::section::on_section;
-use salient_core::HenonHeiles;
+use salient_core::{HenonHeiles, Scheme, TangentMap};
 
 pub const ENERGY: f64 = 0.125;
 
@@ -23,4 +24,16 @@ pub fn dist(a: &([f64; 2], [f64; 2]), b: &([f64; 2], [f64; 2])) -> f64 {
     (0..2)
         .map(|i| (a.0[i] - b.0[i]).abs().max((a.1[i] - b.1[i]).abs()))
         .fold(0.0, f64::max)
+}
+
+/// R1 by SRKN14a at τ = 1e-3 to `t_final`: the reference the adaptive methods are held to.
+pub fn srkn14a_r1(t_final: f64, requests: &Requests) -> OrbitResult<2> {
+    let map = TangentMap::new(&HenonHeiles, &Scheme::by_name("srkn14a").unwrap(), 1e-3);
+    let x = r1();
+    integrate::<_, 2, 2>(&map, x.0, x.1, &OrbitConfig::new(1e-3, t_final), requests)
+}
+
+/// Max-norm distance between the end points of two runs.
+pub fn end_distance(a: &OrbitResult<2>, b: &OrbitResult<2>) -> f64 {
+    dist(&(a.q_end, a.p_end), &(b.q_end, b.p_end))
 }
