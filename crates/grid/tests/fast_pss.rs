@@ -96,7 +96,8 @@ fn labels_do_not_depend_on_threads_or_window() {
     assert_eq!(a.committed.len(), b.committed.len());
     let cells = |l: &salient_grid::Ledger| l.committed.iter().map(|o| o.cell).collect::<Vec<_>>();
     assert_eq!(cells(&a), cells(&b));
-    // The round-based path (full mode, adaptive methods) gives the same fast-PSS labels too.
+    // Adaptive methods (one orbit per task, no abandonment) stream too and agree across threads;
+    // full mode's rounds give the same labels for any window.
     let mut dop = run.clone();
     dop.run = MethodRun {
         method: Method::Dop853,
@@ -106,6 +107,9 @@ fn labels_do_not_depend_on_threads_or_window() {
     dop.config = OrbitConfig::new(0.5, 200.0);
     let x = pool(2).install(|| run_embedded(&grid, &dop, Mode::FastPss, 8, |_| {}));
     let y = pool(1).install(|| run_embedded(&grid, &dop, Mode::FastPss, 1, |_| {}));
-    assert_eq!(y.dropped, 0, "rounds of one cell speculate nothing");
     assert_eq!(cells(&x), cells(&y));
+    let f1 = pool(2).install(|| run_embedded(&grid, &dop, Mode::Full, 64, |_| {}));
+    let f2 = pool(1).install(|| run_embedded(&grid, &dop, Mode::Full, 1, |_| {}));
+    assert_eq!(f1.dropped + f2.dropped, 0, "full mode never drops");
+    assert_eq!(cells(&f1), cells(&f2));
 }
