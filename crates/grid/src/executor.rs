@@ -235,12 +235,13 @@ pub fn integrate_cells_with(
 }
 
 /// Runs a whole grid in this process on the current rayon pool and returns the finished
-/// ledger. Fast PSS streams: every worker repeatedly takes the next `LANES` cells the ledger
-/// needs (skipping cells in flight or certain to be labelled), integrates them (tangent-map
-/// methods in the batched stepper, where orbits whose cell the frontier orbit crosses are
-/// abandoned; adaptive methods one orbit per task), and offers the outcomes. Speculation is
-/// thereby bounded by one batch per worker. Full mode, which never drops work, goes in rounds
-/// of `window` cells. Either way the labels are those of the sequential rule.
+/// ledger. Fast PSS with a tangent-map method streams: every worker repeatedly takes the next
+/// `LANES` cells the ledger needs (skipping cells in flight or certain to be labelled),
+/// integrates them in the batched stepper, where orbits whose cell the frontier orbit crosses
+/// are abandoned, and offers the outcomes; speculation is bounded by one batch per worker.
+/// Other runs go in rounds of `window` cells: adaptive methods cannot abandon orbits, and
+/// streaming them measured slower (more dropped work) than rounds. Either way the labels are
+/// those of the sequential rule.
 pub fn run_embedded(
     grid: &Grid,
     cell_run: &CellRun,
@@ -248,7 +249,7 @@ pub fn run_embedded(
     window: usize,
     mut progress: impl FnMut(&Ledger) + Send,
 ) -> Ledger {
-    let streaming = mode == Mode::FastPss;
+    let streaming = mode == Mode::FastPss && matches!(cell_run.run.method, Method::TangentMap(_));
     if !streaming {
         let mut ledger = Ledger::new(grid, mode);
         while !ledger.done() {

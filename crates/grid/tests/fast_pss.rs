@@ -96,7 +96,7 @@ fn labels_do_not_depend_on_threads_or_window() {
     assert_eq!(a.committed.len(), b.committed.len());
     let cells = |l: &salient_grid::Ledger| l.committed.iter().map(|o| o.cell).collect::<Vec<_>>();
     assert_eq!(cells(&a), cells(&b));
-    // Adaptive methods (one orbit per task, no abandonment) stream too and agree across threads;
+    // Adaptive methods (rounds, one orbit per task) agree across threads and windows;
     // full mode's rounds give the same labels for any window.
     let mut dop = run.clone();
     dop.run = MethodRun {
