@@ -131,12 +131,25 @@ fn line_at(text: &str, at: usize) -> (usize, &str) {
     )
 }
 
+/// The JSON key whose value ends at (line, column), to name the field a parser error is about.
+fn json_key_before(text: &str, line: usize, column: usize) -> Option<String> {
+    let l = text.lines().nth(line.checked_sub(1)?)?;
+    let before = l.get(..column.min(l.len()))?;
+    let colon = before.rfind(':')?;
+    let key_end = before[..colon].rfind('"')?;
+    let key_start = before[..key_end].rfind('"')?;
+    Some(before[key_start + 1..key_end].to_string())
+}
+
 /// Parses and validates a spec's text.
 pub fn parse(text: &str, json: bool) -> CliResult<JobSpec> {
     let raw: RawSpec = if json {
         serde_json::from_str(text).map_err(|e| {
             let first = e.to_string().lines().next().unwrap_or("").to_string();
-            usage(format!("spec: {first}"))
+            match json_key_before(text, e.line(), e.column()) {
+                Some(key) => usage(format!("spec field \"{key}\": {first}")),
+                None => usage(format!("spec: {first}")),
+            }
         })?
     } else {
         toml::from_str(text).map_err(|e| {
@@ -522,6 +535,21 @@ early_stop = false
             ("name = \"t\"", "name = \"t\"\nversion = 2", "version"),
             ("name = \"t\"", "name = \"\"", "name"),
         ];
+        // JSON type errors name the key too.
+        match parse(
+            r#"{"name": 3, "system": {"kind": "henon-heiles", "energy": 0.125}}"#,
+            true,
+        ) {
+            Err(CliError::Usage(msg)) => assert!(msg.contains("\"name\""), "{msg}"),
+            other => panic!("{other:?}"),
+        }
+        match parse(
+            "{\"system\": {\"kind\": \"henon-heiles\",\n \"energy\": \"high\"}}",
+            true,
+        ) {
+            Err(CliError::Usage(msg)) => assert!(msg.contains("\"energy\""), "{msg}"),
+            other => panic!("{other:?}"),
+        }
         for (from, to, field) in cases {
             assert!(GOOD.contains(from), "{from}");
             let text = GOOD.replacen(from, to, 1);
