@@ -37,9 +37,17 @@ fn check(shape: &[usize], len: usize) -> Result<(), ReportError> {
     Ok(())
 }
 
-/// The bytes of an f64 array ('<f8').
+/// The bytes of an f64 array ('<f8') in C order, as [`write_npy_f64`] writes them.
+///
+/// # Panics
+///
+/// If `shape` does not hold exactly `data.len()` values.
 pub fn npy_bytes_f64(shape: &[usize], data: &[f64]) -> Vec<u8> {
+    if let Err(e) = check(shape, data.len()) {
+        panic!("{e}");
+    }
     let mut out = header("<f8", shape);
+    out.reserve(8 * data.len());
     for x in data {
         out.extend_from_slice(&x.to_le_bytes());
     }
@@ -64,30 +72,88 @@ pub fn write_npy_u8(path: &Path, shape: &[usize], data: &[u8]) -> Result<(), Rep
 mod tests {
     use super::*;
 
+    /// The header NumPy (format 1.0) writes: the dict, spaces, '\n', 64-byte aligned.
+    fn numpy_header(dict: &str) -> Vec<u8> {
+        let total = (10 + dict.len() + 1).div_ceil(64) * 64;
+        let mut h = b"\x93NUMPY\x01\x00".to_vec();
+        h.extend_from_slice(&((total - 10) as u16).to_le_bytes());
+        h.extend_from_slice(dict.as_bytes());
+        h.resize(total - 1, b' ');
+        h.push(b'\n');
+        h
+    }
+
     #[test]
     fn header_is_what_numpy_writes() {
-        let b = npy_bytes_f64(&[2, 3], &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
-        assert_eq!(&b[..8], b"\x93NUMPY\x01\x00");
-        let hlen = u16::from_le_bytes([b[8], b[9]]) as usize;
-        assert_eq!((10 + hlen) % 64, 0);
-        let dict = std::str::from_utf8(&b[10..10 + hlen]).unwrap();
-        assert!(dict.starts_with("{'descr': '<f8', 'fortran_order': False, 'shape': (2, 3), }"));
-        assert!(dict.ends_with(" \n"));
-        assert_eq!(b.len(), 10 + hlen + 48);
-        assert_eq!(&b[10 + hlen..10 + hlen + 8], &1.0f64.to_le_bytes());
-        let one_d = npy_bytes_f64(&[5], &[0.0; 5]);
-        assert!(std::str::from_utf8(&one_d[10..70])
-            .unwrap()
-            .contains("'shape': (5,)"));
+        let data = [1.0, 2.0, 3.0, 4.0, 5.0, -0.5];
+        let b = npy_bytes_f64(&[2, 3], &data);
+        let want = numpy_header("{'descr': '<f8', 'fortran_order': False, 'shape': (2, 3), }");
+        assert_eq!(want.len(), 128);
+        // 60 bytes of dict, 57 spaces and '\n' after the 10-byte preamble.
+        assert_eq!(&want[8..10], &[118, 0]);
+        assert_eq!(&b[..128], &want[..]);
+        assert_eq!(b.len(), 128 + 48);
+        for (k, x) in data.iter().enumerate() {
+            let at = 128 + 8 * k;
+            assert_eq!(&b[at..at + 8], &x.to_le_bytes());
+        }
+        // Little-endian, whatever the host.
+        assert_eq!(&b[128..136], &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f]);
+    }
+
+    #[test]
+    fn one_d_and_zero_d_shapes_are_python_tuples() {
+        let b = npy_bytes_f64(&[5], &[0.0; 5]);
+        let want = numpy_header("{'descr': '<f8', 'fortran_order': False, 'shape': (5,), }");
+        assert_eq!(&b[..want.len()], &want[..]);
+        assert_eq!(b.len(), want.len() + 40);
+        let b = npy_bytes_f64(&[], &[2.5]);
+        let want = numpy_header("{'descr': '<f8', 'fortran_order': False, 'shape': (), }");
+        assert_eq!(&b[..want.len()], &want[..]);
+        assert_eq!(&b[want.len()..], &2.5f64.to_le_bytes());
+    }
+
+    #[test]
+    fn u8_arrays_and_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("class.npy");
+        write_npy_u8(&path, &[2, 2], &[1, 2, 3, 4]).unwrap();
+        let b = std::fs::read(&path).unwrap();
+        let want = numpy_header("{'descr': '|u1', 'fortran_order': False, 'shape': (2, 2), }");
+        assert_eq!(&b[..want.len()], &want[..]);
+        assert_eq!(&b[want.len()..], &[1, 2, 3, 4]);
+
+        let path = dir.path().join("sali.npy");
+        write_npy_f64(&path, &[1, 3], &[0.1, 0.2, 0.3]).unwrap();
+        assert_eq!(
+            std::fs::read(&path).unwrap(),
+            npy_bytes_f64(&[1, 3], &[0.1, 0.2, 0.3])
+        );
     }
 
     #[test]
     fn shape_must_match_the_data() {
         let dir = tempfile::tempdir().unwrap();
-        assert!(write_npy_u8(&dir.path().join("a.npy"), &[2, 2], &[1, 2, 3]).is_err());
-        write_npy_u8(&dir.path().join("b.npy"), &[2, 2], &[1, 2, 3, 4]).unwrap();
-        let b = std::fs::read(dir.path().join("b.npy")).unwrap();
-        assert_eq!(&b[b.len() - 4..], &[1, 2, 3, 4]);
-        assert!(std::str::from_utf8(&b[10..30]).unwrap().contains("'|u1'"));
+        let path = dir.path().join("a.npy");
+        match write_npy_u8(&path, &[2, 2], &[1, 2, 3]) {
+            Err(ReportError::Plot(msg)) => assert!(msg.contains("[2, 2]"), "{msg}"),
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(
+            write_npy_f64(&path, &[4], &[1.0]),
+            Err(ReportError::Plot(_))
+        ));
+        assert!(!path.exists(), "nothing is written on a mismatch");
+        // A folder that does not exist is an I/O error.
+        assert!(matches!(
+            write_npy_f64(&dir.path().join("no/such/a.npy"), &[1], &[1.0]),
+            Err(ReportError::Io(_))
+        ));
+    }
+
+    #[test]
+    #[should_panic(expected = "holds 6 values, data has 5")]
+    fn in_memory_bytes_refuse_a_mismatched_shape() {
+        npy_bytes_f64(&[2, 3], &[0.0; 5]);
     }
 }
