@@ -1,6 +1,8 @@
 //! `salient`: the one command-line tool. It parses flags into validated specs and calls the
 //! libraries; the numerics live in `salient-core`, plots and tables in `salient-report`.
 
+mod client;
+mod cluster;
 mod orbit;
 mod precision;
 mod run;
@@ -20,6 +22,9 @@ use std::process::ExitCode;
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Log lines on stderr as text or JSON (default: $SALIENT_LOG_FORMAT, else text).
+    #[arg(long, global = true, value_enum)]
+    log_format: Option<LogFormat>,
 }
 
 #[derive(Subcommand)]
@@ -32,6 +37,26 @@ enum Command {
     /// Speed against error: every method over a ladder of τ or δ on one orbit, against a
     /// double-double Taylor reference.
     Precision(precision::PrecisionArgs),
+    /// Serve jobs to workers over gRPC, with a durable store (distributed mode).
+    Coordinator(cluster::CoordinatorArgs),
+    /// Integrate tiles leased from a coordinator.
+    Worker(cluster::WorkerArgs),
+    /// Send a job spec to the coordinator; prints the job id.
+    Submit(client::SubmitArgs),
+    /// Jobs on the coordinator: state, runs done, cells resolved, orbits/s, workers.
+    Status(client::StatusArgs),
+    /// Live progress of a job, one bar per run.
+    Watch(client::JobArgs),
+    /// Fetch a finished job's results and write the same files as `salient run`.
+    Results(client::ResultsArgs),
+    /// Cancel a job.
+    Cancel(client::JobArgs),
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum LogFormat {
+    Text,
+    Json,
 }
 
 fn main() -> ExitCode {
@@ -45,7 +70,11 @@ fn main() -> ExitCode {
         .with_writer(std::io::stderr)
         .with_target(false)
         .with_ansi(std::io::stderr().is_terminal());
-    if std::env::var("SALIENT_LOG_FORMAT").as_deref() == Ok("json") {
+    let json = match cli.log_format {
+        Some(f) => matches!(f, LogFormat::Json),
+        None => std::env::var("SALIENT_LOG_FORMAT").as_deref() == Ok("json"),
+    };
+    if json {
         builder.json().init();
     } else {
         builder.init();
@@ -54,6 +83,13 @@ fn main() -> ExitCode {
         Command::Orbit(args) => orbit::run(args),
         Command::Run(args) => run::run(args),
         Command::Precision(args) => precision::run(args),
+        Command::Coordinator(args) => cluster::coordinator(args),
+        Command::Worker(args) => cluster::worker(args),
+        Command::Submit(args) => client::submit(args),
+        Command::Status(args) => client::status(args),
+        Command::Watch(args) => client::watch(args),
+        Command::Results(args) => client::results(args),
+        Command::Cancel(args) => client::cancel(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

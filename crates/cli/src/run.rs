@@ -1,16 +1,16 @@
 //! `salient run SPEC.toml`: every member of the sweep on this machine's cores, with the same
 //! ledger and tile executor the distributed mode uses.
 
-use crate::spec::{self, JobSpec, Mode as SpecMode, RunSpec};
+use crate::spec::{self, JobSpec, RunSpec};
 use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use salient_core::orbit::{Class, OrbitConfig};
-use salient_core::run::MethodRun;
+use salient_core::orbit::Class;
 use salient_grid::{run_embedded, CellRun, Counts, Grid, Ledger, Mode};
 use salient_report::{
     render_grey_map_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LogLogPlot, Table,
 };
+use salient_worker::process_cpu_seconds;
 use serde_json::{json, Value};
 use std::fmt::Write as _;
 use std::io::IsTerminal;
@@ -32,11 +32,8 @@ pub struct RunArgs {
     json: bool,
 }
 
-/// Checkpoints per decade of t at which full-mode orbits are also classified (Fig. 7).
-const CHECKPOINTS_PER_DECADE: u32 = 4;
-
 /// What one finished member of the sweep produced.
-struct RunResult {
+pub struct RunResult {
     spec: RunSpec,
     grid: Grid,
     ledger: Ledger,
@@ -46,24 +43,6 @@ struct RunResult {
     dir: PathBuf,
     /// (t, regular %, sticky %, chaotic %) at the checkpoints (full mode).
     checkpoints: Vec<(f64, f64, f64, f64)>,
-}
-
-/// CPU time of this process (user + system), from /proc on Linux; NaN elsewhere.
-fn process_cpu_seconds() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
-        return f64::NAN;
-    };
-    // Fields after the command name (which may contain spaces) start after the last ')'.
-    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else {
-        return f64::NAN;
-    };
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    // utime and stime are fields 14 and 15 of the whole line, 12 and 13 after ')'.
-    let ticks = |i: usize| fields.get(i).and_then(|f| f.parse::<f64>().ok());
-    match (ticks(11), ticks(12)) {
-        (Some(u), Some(s)) => (u + s) / 100.0,
-        _ => f64::NAN,
-    }
 }
 
 fn run_dir_name(index: usize, r: &RunSpec) -> String {
@@ -112,7 +91,13 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         write_run(&job, &result)?;
         results.push(result);
     }
-    let table = sweep_table(&results);
+    write_sweep(&results, &out, args.json)
+}
+
+/// The sweep's table.md/.csv/.json, percent_vs_t.png (when a run has checkpoints), and the
+/// table or the JSON summary on stdout.
+pub fn write_sweep(results: &[RunResult], out: &Path, json: bool) -> CliResult<()> {
+    let table = sweep_table(results);
     let summary = json!({ "runs": results.iter().map(run_json).collect::<Vec<_>>() });
     write_file(&out.join("table.md"), &table.to_markdown())?;
     write_file(&out.join("table.csv"), &table.to_csv())?;
@@ -121,9 +106,9 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         &(serde_json::to_string_pretty(&summary).expect("JSON") + "\n"),
     )?;
     if results.iter().any(|r| !r.checkpoints.is_empty()) {
-        plot_percent_vs_t(&results, &out.join("percent_vs_t.png"))?;
+        plot_percent_vs_t(results, &out.join("percent_vs_t.png"))?;
     }
-    if args.json {
+    if json {
         println!("{summary}");
     } else {
         print!("{}", table.to_markdown());
@@ -139,39 +124,9 @@ fn run_one(
     threads: usize,
     out: &Path,
 ) -> CliResult<RunResult> {
-    let g = &job.grid;
-    let grid = Grid::new(
-        job.energy,
-        g.n_q2,
-        g.n_p2,
-        g.q2_range,
-        g.p2_range,
-        (g.tile_q2, g.tile_p2),
-    );
-    let mode = match g.mode {
-        SpecMode::FastPss => Mode::FastPss,
-        SpecMode::Full => Mode::Full,
-    };
-    let config = OrbitConfig {
-        tau: r.tau,
-        t_final: r.t_final,
-        thresholds: job.thresholds,
-        deviation: job.deviation,
-        escape_radius: None,
-    };
-    let cell_run = CellRun {
-        run: MethodRun {
-            method: r.method.clone(),
-            delta: r.delta,
-            protocol: job.protocol,
-        },
-        config,
-        checkpoints_per_decade: if mode == Mode::Full {
-            CHECKPOINTS_PER_DECADE
-        } else {
-            0
-        },
-    };
+    let grid = job.grid();
+    let mode = job.grid.mode;
+    let cell_run = job.cell_run(index);
     // Fast PSS speculates at most one batch per thread ahead of the ledger; full mode never
     // drops work, so it takes large windows.
     let window = match mode {
@@ -219,20 +174,34 @@ fn run_one(
     }
     let wall_s = start.elapsed().as_secs_f64();
     let cpu_s = process_cpu_seconds() - cpu0;
-    let counts = Counts::of(&grid, &ledger);
-    let checkpoints = checkpoint_percentages(&grid, &ledger, &cell_run);
-    let dir = out.join(run_dir_name(index, r));
     tracing::info!(run = %label, wall_s, orbits = ledger.committed.len(), "done");
-    Ok(RunResult {
-        spec: r.clone(),
-        grid,
-        ledger,
-        counts,
-        cpu_s,
-        wall_s,
-        dir,
-        checkpoints,
-    })
+    Ok(RunResult::new(job, index, grid, ledger, cpu_s, wall_s, out))
+}
+
+impl RunResult {
+    /// A finished run of `job` (embedded, or rebuilt from a coordinator's results), written
+    /// under `out`.
+    pub fn new(
+        job: &JobSpec,
+        index: usize,
+        grid: Grid,
+        ledger: Ledger,
+        cpu_s: f64,
+        wall_s: f64,
+        out: &Path,
+    ) -> RunResult {
+        let spec = &job.runs[index];
+        RunResult {
+            counts: Counts::of(&grid, &ledger),
+            checkpoints: checkpoint_percentages(&grid, &ledger, &job.cell_run(index)),
+            dir: out.join(run_dir_name(index, spec)),
+            spec: spec.clone(),
+            grid,
+            ledger,
+            cpu_s,
+            wall_s,
+        }
+    }
 }
 
 /// Percentages at each checkpoint of a full-mode run (every cell holds its own orbit).
@@ -269,12 +238,12 @@ fn class_str(class: Option<Class>) -> &'static str {
     class.map_or("none", |c| c.as_str())
 }
 
-fn write_file(path: &Path, text: &str) -> CliResult<()> {
+pub fn write_file(path: &Path, text: &str) -> CliResult<()> {
     std::fs::write(path, text).map_err(|e| runtime(&format!("writing {}", path.display()), e))
 }
 
 /// cells.csv, class.npy, sali.npy, map.png and run.json of one run.
-fn write_run(job: &JobSpec, r: &RunResult) -> CliResult<()> {
+pub fn write_run(job: &JobSpec, r: &RunResult) -> CliResult<()> {
     let dir = &r.dir;
     std::fs::create_dir_all(dir).map_err(|e| runtime(&format!("creating {}", dir.display()), e))?;
     let g = &r.grid;

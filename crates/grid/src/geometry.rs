@@ -133,6 +133,26 @@ impl Grid {
         )
     }
 
+    /// Number of tiles; a tile's index counts them in raster order (q2 tile index outer), the
+    /// order in which the canonical order visits them.
+    pub fn tile_count(&self) -> usize {
+        let (a, b) = self.tiles();
+        a * b
+    }
+
+    /// The index of the tile holding `cell`.
+    pub fn tile_of(&self, cell: u32) -> usize {
+        let (i, j) = self.ij(cell);
+        (i / self.tile.0) * self.tiles().1 + j / self.tile.1
+    }
+
+    /// The compatible cells of tile `index`, in canonical order.
+    pub fn tile_compatible_cells(&self, index: usize) -> impl Iterator<Item = u32> + '_ {
+        let nj = self.tiles().1;
+        self.tile_cells(index / nj, index % nj)
+            .filter(|&c| self.is_compatible(c))
+    }
+
     /// The cells of tile (ti, tj) in raster order (compatible or not).
     pub fn tile_cells(&self, ti: usize, tj: usize) -> impl Iterator<Item = u32> + '_ {
         let (i0, j0) = (ti * self.tile.0, tj * self.tile.1);
@@ -176,6 +196,17 @@ mod tests {
         assert_eq!(first, vec![0, 1, 2, 4, 5, 6]);
         for (pos, &c) in g.canonical().iter().enumerate() {
             assert_eq!(g.position(c), Some(pos));
+        }
+        // Tile indices count tiles in raster order, and the tiles' compatible cells in index
+        // order are the canonical order.
+        assert_eq!(g.tile_count(), 6);
+        let by_index: Vec<u32> = (0..6).flat_map(|t| g.tile_compatible_cells(t)).collect();
+        assert_eq!(g.canonical(), &by_index[..]);
+        assert_eq!(g.tile_of(6), 0);
+        assert_eq!(g.tile_of(7), 1);
+        assert_eq!(g.tile_of(g.index(4, 3)), 5);
+        for t in 0..6 {
+            assert!(g.tile_compatible_cells(t).all(|c| g.tile_of(c) == t));
         }
     }
 

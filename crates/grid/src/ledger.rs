@@ -10,7 +10,7 @@
 
 use crate::geometry::Grid;
 use salient_core::orbit::{Class, Status};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 
 /// Whether visited cells are labelled too.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -62,6 +62,9 @@ pub struct Ledger {
     pub committed_steps: u64,
     /// Cells labelled since the last [`Ledger::take_newly_labelled`].
     newly_labelled: Vec<u32>,
+    /// Fast PSS: for an unlabelled cell, the canonical positions of pending outcomes whose
+    /// crossings fell in it.
+    claimers: HashMap<u32, Vec<u32>>,
 }
 
 impl Ledger {
@@ -82,6 +85,7 @@ impl Ledger {
             dropped_steps: 0,
             committed_steps: 0,
             newly_labelled: Vec::new(),
+            claimers: HashMap::new(),
         }
     }
 
@@ -128,6 +132,35 @@ impl Ledger {
             .collect()
     }
 
+    /// Whether an outcome for the cell's own orbit is pending or committed.
+    pub fn has_outcome(&self, cell: u32) -> bool {
+        let pos = self.position[cell as usize];
+        pos != u32::MAX
+            && (self.pending.contains_key(&(pos as usize))
+                || self.label(cell).is_some_and(|l| l.source == cell))
+    }
+
+    /// Whether a pending outcome earlier in canonical order crossed the cell: if that outcome
+    /// commits, the cell is labelled by it, so integrating the cell now is probably wasted.
+    /// Only probably: the claimer may itself be dropped, and then the claim goes with it. The
+    /// frontier cell is never claimed (every pending outcome lies after it), so a scheduler
+    /// that skips claimed cells still makes progress.
+    pub fn is_claimed(&self, cell: u32) -> bool {
+        let pos = self.position[cell as usize];
+        self.claimers
+            .get(&cell)
+            .is_some_and(|c| c.iter().any(|&p| p < pos))
+    }
+
+    /// Whether the cell still needs its own orbit now: compatible, unlabelled, without an
+    /// outcome, and not claimed by an earlier pending outcome.
+    pub fn wants(&self, cell: u32) -> bool {
+        self.compatible[cell as usize]
+            && !self.is_labelled(cell)
+            && !self.has_outcome(cell)
+            && !self.is_claimed(cell)
+    }
+
     /// The cells labelled since the last call.
     pub fn take_newly_labelled(&mut self) -> Vec<u32> {
         std::mem::take(&mut self.newly_labelled)
@@ -153,6 +186,13 @@ impl Ledger {
             self.dropped += 1;
             self.dropped_steps += outcome.steps;
         } else {
+            if self.mode == Mode::FastPss {
+                for &v in &outcome.visited {
+                    if self.compatible[v as usize] && !self.is_labelled(v) {
+                        self.claimers.entry(v).or_default().push(pos as u32);
+                    }
+                }
+            }
             self.pending.insert(pos, outcome);
         }
         self.advance();
@@ -163,6 +203,7 @@ impl Ledger {
             let cell = self.canonical[self.next];
             if self.is_labelled(cell) {
                 if let Some(o) = self.pending.remove(&self.next) {
+                    self.release_claims(&o, self.next);
                     self.dropped += 1;
                     self.dropped_steps += o.steps;
                 }
@@ -172,8 +213,20 @@ impl Ledger {
             let Some(o) = self.pending.remove(&self.next) else {
                 break;
             };
+            self.release_claims(&o, self.next);
             self.commit(o);
             self.next += 1;
+        }
+    }
+
+    fn release_claims(&mut self, o: &Outcome, pos: usize) {
+        for v in &o.visited {
+            if let Some(c) = self.claimers.get_mut(v) {
+                c.retain(|&p| p as usize != pos);
+                if c.is_empty() {
+                    self.claimers.remove(v);
+                }
+            }
         }
     }
 
@@ -306,6 +359,47 @@ mod tests {
             let committed: Vec<u32> = ledger.committed.iter().map(|o| o.cell).collect();
             prop_assert_eq!(&committed, &integrated);
             prop_assert_eq!(ledger.dropped as usize, grid.compatible_count() - integrated.len());
+        }
+
+        /// A scheduler that only integrates cells the ledger `wants` (any of them, with outcomes
+        /// arriving in any order) never stalls and ends with the sequential labels: claims
+        /// from pending outcomes that are later dropped are released.
+        #[test]
+        fn integrating_only_wanted_cells_makes_progress_and_equals_the_rule(
+            seed in any::<u64>(),
+            choices in any::<u64>(),
+            n in 4usize..20,
+            tile in 1usize..6,
+        ) {
+            let grid = Grid::new(0.125, n, n + 2, (-0.43, 0.67), (-0.5, 0.5), (tile, tile + 1));
+            let want = sequential(&grid, Mode::FastPss, |c| fake(&grid, seed, c));
+            let mut ledger = Ledger::new(&grid, Mode::FastPss);
+            let mut in_flight: Vec<Outcome> = Vec::new();
+            let mut s = choices | 1;
+            let mut rnd = move || { s ^= s << 13; s ^= s >> 7; s ^= s << 17; s };
+            let mut integrated = 0usize;
+            while !ledger.done() {
+                let wanted: Vec<u32> = grid
+                    .canonical()
+                    .iter()
+                    .copied()
+                    .filter(|&c| ledger.wants(c) && !in_flight.iter().any(|o| o.cell == c))
+                    .take(6)
+                    .collect();
+                prop_assert!(!(wanted.is_empty() && in_flight.is_empty()), "stalled");
+                if !wanted.is_empty() && (in_flight.is_empty() || rnd() % 2 == 0) {
+                    let c = wanted[(rnd() % wanted.len() as u64) as usize];
+                    in_flight.push(fake(&grid, seed, c));
+                    integrated += 1;
+                } else {
+                    let k = (rnd() % in_flight.len() as u64) as usize;
+                    ledger.offer(in_flight.swap_remove(k));
+                }
+            }
+            for c in 0..grid.cells() as u32 {
+                prop_assert_eq!(ledger.label(c).copied(), want[c as usize]);
+            }
+            prop_assert!(integrated <= grid.compatible_count());
         }
     }
 

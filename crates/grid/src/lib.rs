@@ -1,11 +1,12 @@
 //! Grids of initial conditions on the surface of section: geometry, tiles and canonical order
 //! ([`geometry`]), the fast-PSS [`ledger`] that commits orbit outcomes in canonical order, the
 //! tile [`executor`] that integrates cells on a rayon pool, and the classification counts
-//! ([`summary`]). No files, no networking.
+//! ([`summary`]), and job [`spec`]s parsed from text and validated. No files, no networking.
 
 pub mod executor;
 pub mod geometry;
 pub mod ledger;
+pub mod spec;
 pub mod summary;
 
 pub use executor::{integrate_cells, run_embedded, CellRun};

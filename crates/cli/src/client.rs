@@ -1,0 +1,466 @@
+//! Client commands of the distributed mode: `submit`, `status`, `watch`, `results`, `cancel`.
+//! `results` rebuilds each run's ledger from the coordinator's committed outcomes and writes
+//! the same files as `salient run`, so both modes' outputs can be compared byte for byte.
+
+use crate::cluster::runtime_for;
+use crate::run::{write_run, write_sweep, RunResult};
+use crate::spec::{self, JobSpec};
+use crate::usage::{runtime, CliError, CliResult};
+use clap::Args;
+use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+use salient_grid::Ledger;
+use salient_proto::outcome_from_wire;
+use salient_proto::v1;
+use salient_proto::v1::client_service_client::ClientServiceClient;
+use salient_proto::MAX_MESSAGE_BYTES;
+use salient_worker::{endpoint, Token};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+use tonic::Code;
+
+#[derive(Args, Debug, Clone)]
+pub struct Connection {
+    /// Coordinator URL (http:// or https://).
+    #[arg(
+        long,
+        env = "SALIENT_COORDINATOR",
+        default_value = "http://127.0.0.1:50051"
+    )]
+    coordinator: String,
+    /// Bearer token for the coordinator.
+    #[arg(long, env = "SALIENT_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// PEM of the CA that signed the coordinator's certificate (https only).
+    #[arg(long)]
+    tls_ca: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct SubmitArgs {
+    /// Job spec (TOML, or JSON with the same schema); validated here before it is sent.
+    spec: PathBuf,
+    #[command(flatten)]
+    conn: Connection,
+    /// Wait for the job to finish and print its result JSON.
+    #[arg(long)]
+    wait: bool,
+    /// Print exactly one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+    /// With --wait: also write the results' files here.
+    #[arg(long, requires = "wait")]
+    out: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct StatusArgs {
+    /// One job (default: every job).
+    job: Option<u64>,
+    #[command(flatten)]
+    conn: Connection,
+    /// Print exactly one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct JobArgs {
+    job: u64,
+    #[command(flatten)]
+    conn: Connection,
+}
+
+#[derive(Args, Debug)]
+pub struct ResultsArgs {
+    job: u64,
+    #[command(flatten)]
+    conn: Connection,
+    /// Wait until the job has finished.
+    #[arg(long)]
+    wait: bool,
+    /// Output folder (default: out/<spec name>); the same files as `salient run`.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print exactly one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+type Client = ClientServiceClient<InterceptedService<Channel, Token>>;
+
+/// A gRPC failure as a CLI error: bad input (unknown job, invalid spec) is exit 2.
+fn rpc_error(what: &str, e: tonic::Status) -> CliError {
+    match e.code() {
+        Code::InvalidArgument | Code::NotFound | Code::FailedPrecondition => {
+            CliError::Usage(format!("{what}: {}", e.message()))
+        }
+        Code::Unauthenticated => CliError::Runtime(format!("{what}: {}", e.message())),
+        _ => CliError::Runtime(format!("{what}: {} ({:?})", e.message(), e.code())),
+    }
+}
+
+async fn connect(c: &Connection) -> CliResult<Client> {
+    if !(c.coordinator.starts_with("http://") || c.coordinator.starts_with("https://")) {
+        return Err(CliError::Usage(format!(
+            "--coordinator must be an http:// or https:// URL (got {:?})",
+            c.coordinator
+        )));
+    }
+    let ca =
+        match &c.tls_ca {
+            Some(p) => Some(std::fs::read(p).map_err(|e| {
+                CliError::Usage(format!("--tls-ca: cannot read {}: {e}", p.display()))
+            })?),
+            None => None,
+        };
+    let channel = endpoint(&c.coordinator, ca.as_deref())
+        .map_err(CliError::Usage)?
+        .connect()
+        .await
+        .map_err(|e| {
+            CliError::Runtime(format!(
+                "cannot reach the coordinator at {}: {e}",
+                c.coordinator
+            ))
+        })?;
+    Ok(
+        ClientServiceClient::with_interceptor(channel, Token(c.token.clone()))
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(MAX_MESSAGE_BYTES),
+    )
+}
+
+/// The spec as the JSON the coordinator takes (a valid TOML spec converts losslessly).
+fn spec_json(path: &Path) -> CliResult<(JobSpec, String)> {
+    let job = spec::load(path)?;
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| CliError::Usage(format!("spec: cannot read {}: {e}", path.display())))?;
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy())
+        .unwrap_or_default();
+    let json = if spec::is_json(&name, &text) {
+        text
+    } else {
+        let table: toml::Table = text
+            .parse()
+            .map_err(|e| CliError::Usage(format!("spec: {e}")))?;
+        serde_json::to_string(&table).expect("a TOML table is JSON")
+    };
+    Ok((job, json))
+}
+
+pub fn submit(args: SubmitArgs) -> CliResult<()> {
+    let (job, json) = spec_json(&args.spec)?;
+    for w in &job.warnings {
+        tracing::warn!("{w}");
+    }
+    runtime_for(1)?.block_on(async {
+        let mut client = connect(&args.conn).await?;
+        let reply = client
+            .submit(v1::SubmitRequest { spec_json: json })
+            .await
+            .map_err(|e| rpc_error("submit", e))?
+            .into_inner();
+        tracing::info!(job = reply.job, name = %job.name, "submitted");
+        if !args.wait {
+            if args.json {
+                println!("{}", serde_json::json!({ "job": reply.job }));
+            } else {
+                println!("{}", reply.job);
+            }
+            return Ok(());
+        }
+        wait_finished(&mut client, reply.job).await?;
+        let out = args.out.unwrap_or_else(|| Path::new("out").join(&job.name));
+        fetch_and_write(&mut client, reply.job, &out, true).await
+    })
+}
+
+fn status_row(j: &v1::JobStatus) -> Vec<String> {
+    vec![
+        j.job.to_string(),
+        j.name.clone(),
+        j.state.clone(),
+        format!("{}/{}", j.runs_done, j.runs_total),
+        format!("{:.1}", j.resolved_percent),
+        format!("{:.0}", j.orbits_per_s),
+        j.workers.to_string(),
+    ]
+}
+
+fn status_json(j: &v1::JobStatus) -> serde_json::Value {
+    serde_json::json!({
+        "job": j.job,
+        "name": j.name,
+        "state": j.state,
+        "runs_done": j.runs_done,
+        "runs_total": j.runs_total,
+        "resolved_percent": j.resolved_percent,
+        "orbits_per_s": j.orbits_per_s,
+        "workers": j.workers,
+        "stale_reports": j.stale_reports,
+        "error": (!j.error.is_empty()).then_some(&j.error),
+        "runs": j.runs.iter().map(|r| serde_json::json!({
+            "run": r.run, "method": r.method, "tau": r.tau, "t_final": r.t_final,
+            "delta": r.delta, "compatible": r.compatible, "resolved": r.resolved,
+            "orbits": r.orbits, "dropped": r.dropped, "orbits_per_s": r.orbits_per_s,
+            "eta_s": r.eta_s, "done": r.done, "wall_s": r.wall_s,
+        })).collect::<Vec<_>>(),
+    })
+}
+
+pub fn status(args: StatusArgs) -> CliResult<()> {
+    runtime_for(1)?.block_on(async {
+        let mut client = connect(&args.conn).await?;
+        let reply = client
+            .status(v1::StatusRequest { job: args.job })
+            .await
+            .map_err(|e| rpc_error("status", e))?
+            .into_inner();
+        if args.json {
+            println!(
+                "{}",
+                serde_json::json!({
+                    "workers": reply.workers,
+                    "jobs": reply.jobs.iter().map(status_json).collect::<Vec<_>>(),
+                })
+            );
+            return Ok(());
+        }
+        let mut t = salient_report::Table::new(&[
+            "job",
+            "name",
+            "state",
+            "runs done",
+            "% cells resolved",
+            "orbits/s",
+            "workers",
+        ]);
+        for j in &reply.jobs {
+            t.push(status_row(j));
+        }
+        print!("{}", t.to_markdown());
+        println!("{} worker(s) connected", reply.workers);
+        Ok(())
+    })
+}
+
+fn run_label(r: &v1::RunProgress) -> String {
+    let mut s = format!(
+        "run {} {} τ={} t={:e}",
+        r.run + 1,
+        r.method,
+        r.tau,
+        r.t_final
+    );
+    if let Some(d) = r.delta {
+        s.push_str(&format!(" δ={d:e}"));
+    }
+    s
+}
+
+pub fn watch(args: JobArgs) -> CliResult<()> {
+    runtime_for(1)?.block_on(async {
+        let mut client = connect(&args.conn).await?;
+        let mut stream = client
+            .watch(v1::WatchRequest { job: args.job })
+            .await
+            .map_err(|e| rpc_error("watch", e))?
+            .into_inner();
+        let tty = std::io::stderr().is_terminal();
+        let multi = MultiProgress::new();
+        let mut bars: Vec<ProgressBar> = Vec::new();
+        let mut last: Option<v1::JobStatus> = None;
+        while let Some(msg) = stream.message().await.map_err(|e| rpc_error("watch", e))? {
+            if tty {
+                while bars.len() < msg.runs.len() {
+                    let r = &msg.runs[bars.len()];
+                    let b = multi.add(ProgressBar::new(r.compatible));
+                    b.set_style(
+                        ProgressStyle::with_template(
+                            "{prefix} {bar:30} {pos}/{len} cells  {msg}",
+                        )
+                        .expect("template"),
+                    );
+                    b.set_prefix(run_label(r));
+                    bars.push(b);
+                }
+                for (b, r) in bars.iter().zip(&msg.runs) {
+                    b.set_position(r.resolved);
+                    b.set_message(format!(
+                        "{} orbits, {:.0}/s, ETA {}{}",
+                        r.orbits,
+                        r.orbits_per_s,
+                        r.eta_s.map_or("—".into(), |e| format!("{e:.0} s")),
+                        if r.done { ", done" } else { "" }
+                    ));
+                }
+            } else {
+                for r in msg.runs.iter().filter(|r| !r.done && r.orbits > 0) {
+                    tracing::info!(job = msg.job, run = %run_label(r), resolved = r.resolved, compatible = r.compatible, orbits = r.orbits, orbits_per_s = r.orbits_per_s, eta_s = r.eta_s.unwrap_or(f64::NAN), workers = msg.workers, "progress");
+                }
+            }
+            last = Some(msg);
+        }
+        for b in bars {
+            b.finish();
+        }
+        let Some(last) = last else {
+            return Err(CliError::Runtime("the coordinator closed the stream".into()));
+        };
+        println!("job {} {}", last.job, last.state);
+        match last.state.as_str() {
+            "done" => Ok(()),
+            other => Err(CliError::Runtime(format!("job {} ended {other}", last.job))),
+        }
+    })
+}
+
+pub fn cancel(args: JobArgs) -> CliResult<()> {
+    runtime_for(1)?.block_on(async {
+        let mut client = connect(&args.conn).await?;
+        let reply = client
+            .cancel(v1::CancelRequest { job: args.job })
+            .await
+            .map_err(|e| rpc_error("cancel", e))?
+            .into_inner();
+        println!("job {} {}", args.job, reply.state);
+        Ok(())
+    })
+}
+
+async fn job_state(client: &mut Client, job: u64) -> CliResult<String> {
+    let reply = client
+        .status(v1::StatusRequest { job: Some(job) })
+        .await
+        .map_err(|e| rpc_error("status", e))?
+        .into_inner();
+    reply
+        .jobs
+        .first()
+        .map(|j| j.state.clone())
+        .ok_or_else(|| CliError::Usage(format!("no job {job}")))
+}
+
+async fn wait_finished(client: &mut Client, job: u64) -> CliResult<()> {
+    loop {
+        match job_state(client, job).await?.as_str() {
+            "done" => return Ok(()),
+            s @ ("cancelled" | "failed") => {
+                return Err(CliError::Runtime(format!("job {job} ended {s}")))
+            }
+            _ => tokio::time::sleep(Duration::from_millis(300)).await,
+        }
+    }
+}
+
+pub fn results(args: ResultsArgs) -> CliResult<()> {
+    runtime_for(1)?.block_on(async {
+        let mut client = connect(&args.conn).await?;
+        if args.wait {
+            wait_finished(&mut client, args.job).await?;
+        } else {
+            let state = job_state(&mut client, args.job).await?;
+            if state != "done" {
+                return Err(CliError::Runtime(format!(
+                    "job {} is {state}; results exist once it is done (use --wait)",
+                    args.job
+                )));
+            }
+        }
+        let out = match args.out {
+            Some(o) => o,
+            None => {
+                let name = client
+                    .status(v1::StatusRequest {
+                        job: Some(args.job),
+                    })
+                    .await
+                    .map_err(|e| rpc_error("status", e))?
+                    .into_inner()
+                    .jobs
+                    .first()
+                    .map(|j| j.name.clone())
+                    .unwrap_or_default();
+                Path::new("out").join(name)
+            }
+        };
+        fetch_and_write(&mut client, args.job, &out, args.json).await
+    })
+}
+
+/// Streams a finished job's results, rebuilds each run's ledger from its committed outcomes
+/// (the labels follow from them exactly), and writes what `salient run` writes.
+async fn fetch_and_write(client: &mut Client, job: u64, out: &Path, json: bool) -> CliResult<()> {
+    use v1::results_chunk::Part;
+    let mut stream = client
+        .results(v1::ResultsRequest { job })
+        .await
+        .map_err(|e| rpc_error("results", e))?
+        .into_inner();
+    let bad = |m: String| CliError::Runtime(format!("results of job {job}: {m}"));
+    let mut spec: Option<JobSpec> = None;
+    let mut runs: Vec<(v1::RunHeader, Ledger)> = Vec::new();
+    while let Some(chunk) = stream
+        .message()
+        .await
+        .map_err(|e| rpc_error("results", e))?
+    {
+        match chunk.part {
+            Some(Part::Header(h)) => {
+                spec = Some(
+                    spec::parse(&h.spec_json, true)
+                        .map_err(|e| bad(format!("the stored spec: {e}")))?,
+                )
+            }
+            Some(Part::Run(h)) => {
+                let s = spec
+                    .as_ref()
+                    .ok_or_else(|| bad("run before header".into()))?;
+                runs.push((h, Ledger::new(&s.grid(), s.grid.mode)));
+            }
+            Some(Part::Outcomes(batch)) => {
+                let s = spec
+                    .as_ref()
+                    .ok_or_else(|| bad("outcomes before header".into()))?;
+                let (_, ledger) = runs
+                    .iter_mut()
+                    .find(|(h, _)| h.run == batch.run)
+                    .ok_or_else(|| bad(format!("outcomes of unknown run {}", batch.run)))?;
+                let grid = s.grid();
+                let checkpoints = s.cell_run(batch.run as usize).checkpoint_steps().len();
+                for o in &batch.outcomes {
+                    ledger.offer(outcome_from_wire(o, &grid, checkpoints).map_err(bad)?);
+                }
+            }
+            None => return Err(bad("an empty message".into())),
+        }
+    }
+    let job_spec = spec.ok_or_else(|| bad("no header".into()))?;
+    std::fs::create_dir_all(out).map_err(|e| runtime(&format!("creating {}", out.display()), e))?;
+    let mut results = Vec::new();
+    for (h, mut ledger) in runs {
+        if !ledger.done() {
+            return Err(bad(format!("run {} is incomplete", h.run)));
+        }
+        // Rebuilt from committed outcomes only: the coordinator's dropped work is reported.
+        ledger.dropped = h.orbits_dropped;
+        ledger.dropped_steps = h.steps_dropped;
+        let r = RunResult::new(
+            &job_spec,
+            h.run as usize,
+            job_spec.grid(),
+            ledger,
+            h.cpu_s,
+            h.wall_s,
+            out,
+        );
+        write_run(&job_spec, &r)?;
+        results.push(r);
+    }
+    write_sweep(&results, out, json)
+}

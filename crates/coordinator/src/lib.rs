@@ -1,0 +1,331 @@
+//! The coordinator: the gRPC services for workers and clients (tonic), and one event loop on
+//! its own thread that owns the [`scheduler::Scheduler`] — jobs, runs, ledgers, tile leases —
+//! and its SQLite store. Handlers only turn requests into [`Event`]s and wait for the loop's
+//! answer, so every state change happens in one place, in arrival order, and is committed to
+//! the store before the answer goes out. It never integrates an orbit.
+
+pub mod scheduler;
+
+use salient_proto::v1;
+use salient_proto::v1::client_service_server::{ClientService, ClientServiceServer};
+use salient_proto::v1::worker_service_server::{WorkerService, WorkerServiceServer};
+use salient_proto::MAX_MESSAGE_BYTES;
+use scheduler::{Config, Scheduler};
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::pin::Pin;
+use std::time::{Duration, Instant};
+use tokio::sync::{mpsc, oneshot};
+use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
+use tonic::transport::{Identity, Server, ServerTlsConfig};
+use tonic::{Request, Response, Status};
+
+type Reply<T> = oneshot::Sender<Result<T, Status>>;
+
+/// Everything that changes or reads the scheduler's state.
+pub enum Event {
+    Submit(String, Reply<(u64, Vec<String>)>),
+    Register(v1::RegisterRequest, Reply<v1::RegisterReply>),
+    Poll(v1::PollRequest, Reply<v1::PollReply>),
+    Renew(v1::RenewRequest, Reply<v1::RenewReply>),
+    Report(v1::ReportRequest, Reply<v1::ReportReply>),
+    Deregister(v1::DeregisterRequest, Reply<()>),
+    Status(Option<u64>, Reply<v1::StatusReply>),
+    Watch(u64, mpsc::Sender<Result<v1::JobStatus, Status>>),
+    Results(u64, Reply<Vec<v1::ResultsChunk>>),
+    Cancel(u64, Reply<String>),
+    Tick,
+}
+
+/// How the coordinator is run.
+pub struct Options {
+    pub listen: SocketAddr,
+    pub db: PathBuf,
+    /// Bearer token required from workers and clients.
+    pub token: Option<String>,
+    /// PEM certificate chain and key for TLS.
+    pub tls: Option<(Vec<u8>, Vec<u8>)>,
+    pub config: Config,
+    /// Interval of the per-run progress log lines.
+    pub progress_every: Duration,
+}
+
+/// Outcomes per results message: far below the message size limit even with long visited
+/// lists.
+const RESULTS_BATCH: usize = 256;
+
+/// The loop: owns the scheduler, answers events in arrival order.
+fn event_loop(mut s: Scheduler, mut rx: mpsc::Receiver<Event>, progress_every: Duration) {
+    let mut watchers: Vec<(u64, mpsc::Sender<Result<v1::JobStatus, Status>>)> = Vec::new();
+    let mut last_progress = Instant::now();
+    while let Some(ev) = rx.blocking_recv() {
+        match ev {
+            Event::Submit(spec, tx) => drop(tx.send(s.submit(&spec))),
+            Event::Register(r, tx) => drop(tx.send(s.register(&r))),
+            Event::Poll(r, tx) => drop(tx.send(s.poll(&r))),
+            Event::Renew(r, tx) => drop(tx.send(s.renew_only(&r))),
+            Event::Report(r, tx) => drop(tx.send(s.report(&r))),
+            Event::Deregister(r, tx) => drop(tx.send(s.deregister(&r))),
+            Event::Status(j, tx) => drop(tx.send(s.status(j))),
+            Event::Results(j, tx) => drop(tx.send(s.results(j, RESULTS_BATCH))),
+            Event::Cancel(j, tx) => drop(tx.send(s.cancel(j))),
+            Event::Watch(j, tx) => match s.status(Some(j)) {
+                Ok(st) => {
+                    let finished = st.jobs.first().is_some_and(|j| is_terminal(&j.state));
+                    if let Some(first) = st.jobs.into_iter().next() {
+                        let _ = tx.try_send(Ok(first));
+                    }
+                    if !finished {
+                        watchers.push((j, tx));
+                    }
+                }
+                Err(e) => drop(tx.try_send(Err(e))),
+            },
+            Event::Tick => {
+                s.tick();
+                if last_progress.elapsed() >= progress_every {
+                    last_progress = Instant::now();
+                    s.log_progress();
+                }
+                watchers.retain(|(job, tx)| {
+                    if tx.is_closed() {
+                        return false;
+                    }
+                    match s.status(Some(*job)) {
+                        Ok(st) => {
+                            let Some(js) = st.jobs.into_iter().next() else {
+                                return false;
+                            };
+                            let finished = is_terminal(&js.state);
+                            // A slow watcher misses intermediate states, never the last one.
+                            let sent = tx.try_send(Ok(js)).is_ok();
+                            !(finished && sent)
+                        }
+                        Err(e) => {
+                            let _ = tx.try_send(Err(e));
+                            false
+                        }
+                    }
+                });
+                s.retire_finished();
+            }
+        }
+    }
+}
+
+fn is_terminal(state: &str) -> bool {
+    matches!(state, "done" | "cancelled" | "failed")
+}
+
+#[derive(Clone)]
+struct Handle(mpsc::Sender<Event>);
+
+impl Handle {
+    async fn ask<T>(&self, make: impl FnOnce(Reply<T>) -> Event) -> Result<T, Status> {
+        let (tx, rx) = oneshot::channel();
+        self.0
+            .send(make(tx))
+            .await
+            .map_err(|_| Status::unavailable("coordinator is shutting down"))?;
+        rx.await
+            .map_err(|_| Status::unavailable("coordinator is shutting down"))?
+    }
+}
+
+#[tonic::async_trait]
+impl WorkerService for Handle {
+    async fn register(
+        &self,
+        r: Request<v1::RegisterRequest>,
+    ) -> Result<Response<v1::RegisterReply>, Status> {
+        self.ask(|tx| Event::Register(r.into_inner(), tx))
+            .await
+            .map(Response::new)
+    }
+    async fn poll(&self, r: Request<v1::PollRequest>) -> Result<Response<v1::PollReply>, Status> {
+        self.ask(|tx| Event::Poll(r.into_inner(), tx))
+            .await
+            .map(Response::new)
+    }
+    async fn renew(
+        &self,
+        r: Request<v1::RenewRequest>,
+    ) -> Result<Response<v1::RenewReply>, Status> {
+        self.ask(|tx| Event::Renew(r.into_inner(), tx))
+            .await
+            .map(Response::new)
+    }
+    async fn report(
+        &self,
+        r: Request<v1::ReportRequest>,
+    ) -> Result<Response<v1::ReportReply>, Status> {
+        self.ask(|tx| Event::Report(r.into_inner(), tx))
+            .await
+            .map(Response::new)
+    }
+    async fn deregister(
+        &self,
+        r: Request<v1::DeregisterRequest>,
+    ) -> Result<Response<v1::DeregisterReply>, Status> {
+        self.ask(|tx| Event::Deregister(r.into_inner(), tx))
+            .await
+            .map(|()| Response::new(v1::DeregisterReply {}))
+    }
+}
+
+type Stream<T> = Pin<Box<dyn tokio_stream::Stream<Item = Result<T, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl ClientService for Handle {
+    async fn submit(
+        &self,
+        r: Request<v1::SubmitRequest>,
+    ) -> Result<Response<v1::SubmitReply>, Status> {
+        let (job, warnings) = self
+            .ask(|tx| Event::Submit(r.into_inner().spec_json, tx))
+            .await?;
+        Ok(Response::new(v1::SubmitReply { job, warnings }))
+    }
+    async fn status(
+        &self,
+        r: Request<v1::StatusRequest>,
+    ) -> Result<Response<v1::StatusReply>, Status> {
+        self.ask(|tx| Event::Status(r.into_inner().job, tx))
+            .await
+            .map(Response::new)
+    }
+    type WatchStream = Stream<v1::JobStatus>;
+    async fn watch(
+        &self,
+        r: Request<v1::WatchRequest>,
+    ) -> Result<Response<Self::WatchStream>, Status> {
+        let (tx, rx) = mpsc::channel(16);
+        self.0
+            .send(Event::Watch(r.into_inner().job, tx))
+            .await
+            .map_err(|_| Status::unavailable("coordinator is shutting down"))?;
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+    type ResultsStream = Stream<v1::ResultsChunk>;
+    async fn results(
+        &self,
+        r: Request<v1::ResultsRequest>,
+    ) -> Result<Response<Self::ResultsStream>, Status> {
+        let chunks = self
+            .ask(|tx| Event::Results(r.into_inner().job, tx))
+            .await?;
+        Ok(Response::new(Box::pin(tokio_stream::iter(
+            chunks.into_iter().map(Ok),
+        ))))
+    }
+    async fn cancel(
+        &self,
+        r: Request<v1::CancelRequest>,
+    ) -> Result<Response<v1::CancelReply>, Status> {
+        let state = self.ask(|tx| Event::Cancel(r.into_inner().job, tx)).await?;
+        Ok(Response::new(v1::CancelReply { state }))
+    }
+}
+
+/// Requires `authorization: Bearer <token>` when a token is configured.
+fn check_token(
+    token: Option<String>,
+) -> impl Fn(Request<()>) -> Result<Request<()>, Status> + Clone {
+    move |req: Request<()>| {
+        let Some(want) = &token else {
+            return Ok(req);
+        };
+        let got = req
+            .metadata()
+            .get("authorization")
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "));
+        if got.is_some_and(|g| constant_time_eq(g.as_bytes(), want.as_bytes())) {
+            Ok(req)
+        } else {
+            Err(Status::unauthenticated(
+                "a valid bearer token is required (--token or $SALIENT_TOKEN)",
+            ))
+        }
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// Opens the store, resumes unfinished jobs, binds, and serves until `shutdown` resolves.
+/// `bound` receives the address actually bound (useful with port 0).
+pub async fn serve(
+    opts: Options,
+    bound: impl FnOnce(SocketAddr),
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), String> {
+    let store = salient_store::Store::open(&opts.db)
+        .map_err(|e| format!("opening the store {}: {e}", opts.db.display()))?;
+    let scheduler = Scheduler::new(store, opts.config)?;
+    let (tx, rx) = mpsc::channel::<Event>(1024);
+    let progress_every = opts.progress_every;
+    let loop_thread = std::thread::Builder::new()
+        .name("scheduler".into())
+        .spawn(move || event_loop(scheduler, rx, progress_every))
+        .map_err(|e| format!("starting the scheduler thread: {e}"))?;
+    let ticker = {
+        let tx = tx.clone();
+        tokio::spawn(async move {
+            let mut every = tokio::time::interval(Duration::from_millis(250));
+            loop {
+                every.tick().await;
+                if tx.send(Event::Tick).await.is_err() {
+                    break;
+                }
+            }
+        })
+    };
+    let listener = tokio::net::TcpListener::bind(opts.listen)
+        .await
+        .map_err(|e| format!("binding {}: {e}", opts.listen))?;
+    let addr = listener
+        .local_addr()
+        .map_err(|e| format!("reading the bound address: {e}"))?;
+    bound(addr);
+    tracing::info!(%addr, db = %opts.db.display(), tls = opts.tls.is_some(), token = opts.token.is_some(), "coordinator listening");
+
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<WorkerServiceServer<Handle>>().await;
+    health.set_serving::<ClientServiceServer<Handle>>().await;
+    let handle = Handle(tx);
+    let auth = check_token(opts.token.clone());
+    let workers = tonic::service::interceptor::InterceptedService::new(
+        WorkerServiceServer::new(handle.clone())
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(MAX_MESSAGE_BYTES),
+        auth.clone(),
+    );
+    let clients = tonic::service::interceptor::InterceptedService::new(
+        ClientServiceServer::new(handle)
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(MAX_MESSAGE_BYTES),
+        auth,
+    );
+    let mut builder = Server::builder();
+    if let Some((cert, key)) = &opts.tls {
+        builder = builder
+            .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(cert, key)))
+            .map_err(|e| format!("TLS configuration: {e}"))?;
+    }
+    let result = builder
+        .add_service(health_service)
+        .add_service(workers)
+        .add_service(clients)
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+        .await
+        .map_err(|e| format!("serving: {e}"));
+    ticker.abort();
+    // The handlers' senders are gone with the server; the loop ends once the ticker's is too.
+    let _ = ticker.await;
+    let _ = tokio::task::spawn_blocking(move || loop_thread.join()).await;
+    tracing::info!("coordinator stopped");
+    result
+}

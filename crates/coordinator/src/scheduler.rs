@@ -1,0 +1,924 @@
+//! The scheduler state and every transition of it, synchronous and free of networking so it
+//! can be driven by the event loop and by tests alike. Each mutating call writes to the store
+//! before it returns, so the caller may acknowledge afterwards.
+
+use prost::Message;
+use salient_grid::spec::{self, JobSpec};
+use salient_grid::{Grid, Ledger};
+use salient_proto::v1;
+use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
+use salient_store::{JobState, Report, Store, StoreError};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tonic::Status;
+
+/// Timing of leases and polls.
+#[derive(Clone, Copy, Debug)]
+pub struct Config {
+    /// A lease lapses this long after the last poll that named it.
+    pub lease: Duration,
+    /// How often workers poll while busy.
+    pub poll: Duration,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            lease: Duration::from_secs(30),
+            poll: Duration::from_millis(200),
+        }
+    }
+}
+
+/// A (job, run, tile) lease's work, without the attempt.
+type TileKey = (u64, u32, u32);
+
+struct WorkerInfo {
+    name: String,
+    threads: u32,
+    last_seen: Instant,
+    leases: BTreeSet<TileKey>,
+}
+
+struct ActiveLease {
+    worker: String,
+    deadline: Instant,
+    cells: Vec<u32>,
+    /// Cells the worker was already told to skip.
+    skipped: HashSet<u32>,
+}
+
+#[derive(Default)]
+struct Tile {
+    /// The latest attempt issued (0: never leased).
+    attempt: u32,
+    lease: Option<ActiveLease>,
+}
+
+struct Run {
+    grid: Grid,
+    ledger: Ledger,
+    checkpoints: usize,
+    tiles: Vec<Tile>,
+    cpu_ns: u64,
+    started: Option<Instant>,
+    wall_s: f64,
+    done: bool,
+    stale_orbits: u64,
+    stale_steps: u64,
+}
+
+struct Job {
+    id: u64,
+    name: String,
+    spec: JobSpec,
+    spec_json: String,
+    state: JobState,
+    runs: Vec<Run>,
+    stale_reports: u64,
+    error: Option<String>,
+}
+
+/// What a poll or report produced for the worker.
+#[derive(Default)]
+struct Replies {
+    acknowledged: Vec<v1::TileRef>,
+    stale: Vec<v1::TileRef>,
+}
+
+fn now_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
+}
+
+fn store_err(e: StoreError) -> Status {
+    tracing::error!(error = %e, "store failure");
+    Status::internal(format!("store: {e}"))
+}
+
+fn tile_ref(key: TileKey, attempt: u32) -> v1::TileRef {
+    v1::TileRef {
+        job: key.0,
+        run: key.1,
+        tile: key.2,
+        attempt,
+    }
+}
+
+/// Counter names of a run's persisted totals.
+fn counter(run: usize, what: &str) -> String {
+    format!("run{run}.{what}")
+}
+
+impl Run {
+    fn new(spec: &JobSpec, index: usize) -> Run {
+        let grid = spec.grid();
+        let cell_run = spec.cell_run(index);
+        Run {
+            ledger: Ledger::new(&grid, spec.grid.mode),
+            checkpoints: cell_run.checkpoint_steps().len(),
+            tiles: (0..grid.tile_count()).map(|_| Tile::default()).collect(),
+            grid,
+            cpu_ns: 0,
+            started: None,
+            wall_s: 0.0,
+            done: false,
+            stale_orbits: 0,
+            stale_steps: 0,
+        }
+    }
+
+    /// The cells of tile `t` that need their own orbit now.
+    fn wanted(&self, t: usize) -> Vec<u32> {
+        self.grid
+            .tile_compatible_cells(t)
+            .filter(|&c| self.ledger.wants(c))
+            .collect()
+    }
+
+    fn elapsed(&self) -> f64 {
+        if self.done {
+            self.wall_s
+        } else {
+            self.started.map_or(0.0, |s| s.elapsed().as_secs_f64())
+        }
+    }
+}
+
+/// Every job, worker and lease the coordinator knows, with the store behind it.
+pub struct Scheduler {
+    store: Store,
+    cfg: Config,
+    jobs: BTreeMap<u64, Job>,
+    workers: HashMap<String, WorkerInfo>,
+    next_worker: u64,
+}
+
+impl Scheduler {
+    /// Opens the scheduler on a store, resuming every unfinished job from its committed
+    /// outcomes (nothing committed is integrated again).
+    pub fn new(store: Store, cfg: Config) -> Result<Scheduler, String> {
+        let mut s = Scheduler {
+            store,
+            cfg,
+            jobs: BTreeMap::new(),
+            workers: HashMap::new(),
+            next_worker: 1,
+        };
+        let rows = s.store.unfinished_jobs().map_err(|e| e.to_string())?;
+        for row in rows {
+            let job = s.load_job(row.id).map_err(|e| e.message().to_string())?;
+            tracing::info!(
+                job = row.id,
+                name = %job.name,
+                resolved = job.runs.iter().map(|r| r.ledger.resolved()).sum::<usize>(),
+                "resumed"
+            );
+            s.jobs.insert(row.id, job);
+        }
+        Ok(s)
+    }
+
+    /// Rebuilds a job from the store: its runs' ledgers from every stored outcome (the ledger's
+    /// result does not depend on arrival order), attempts and totals.
+    fn load_job(&self, id: u64) -> Result<Job, Status> {
+        let row = self
+            .store
+            .job(id)
+            .map_err(store_err)?
+            .ok_or_else(|| Status::not_found(format!("no job {id}")))?;
+        let spec = spec::parse(&row.spec, true)
+            .map_err(|e| Status::internal(format!("stored spec of job {id}: {e}")))?;
+        let counters = self.store.counters(id).map_err(store_err)?;
+        let count =
+            |run: usize, what: &str| counters.get(&counter(run, what)).copied().unwrap_or(0);
+        let mut runs = Vec::new();
+        for index in 0..spec.runs.len() {
+            let mut run = Run::new(&spec, index);
+            for stored in self.store.outcomes(id, index as u32).map_err(store_err)? {
+                let wire = v1::Outcome::decode(stored.data.as_slice())
+                    .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
+                let o = outcome_from_wire(&wire, &run.grid, run.checkpoints)
+                    .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
+                run.ledger.offer(o);
+            }
+            run.cpu_ns = self
+                .store
+                .run_totals(id, index as u32)
+                .map_err(store_err)?
+                .cpu_ns;
+            run.done = run.ledger.done();
+            run.wall_s = count(index, "wall_ms") as f64 / 1e3;
+            run.stale_orbits = count(index, "stale_orbits");
+            run.stale_steps = count(index, "stale_steps");
+            runs.push(run);
+        }
+        for (run, tile, attempt) in self.store.attempts(id).map_err(store_err)? {
+            if let Some(t) = runs
+                .get_mut(run as usize)
+                .and_then(|r| r.tiles.get_mut(tile as usize))
+            {
+                t.attempt = attempt;
+            }
+        }
+        Ok(Job {
+            id,
+            name: row.name,
+            spec,
+            spec_json: row.spec,
+            state: row.state,
+            runs,
+            stale_reports: counters.get("stale_reports").copied().unwrap_or(0),
+            error: row.error,
+        })
+    }
+
+    /// Validates a spec and queues it; returns the job id and the spec's warnings.
+    pub fn submit(&mut self, spec_json: &str) -> Result<(u64, Vec<String>), Status> {
+        let spec = spec::parse(spec_json, true).map_err(|e| Status::invalid_argument(e.0))?;
+        let id = self
+            .store
+            .insert_job(&spec.name, spec_json, now_ms())
+            .map_err(store_err)?;
+        let runs = (0..spec.runs.len()).map(|i| Run::new(&spec, i)).collect();
+        let warnings = spec.warnings.clone();
+        tracing::info!(job = id, name = %spec.name, runs = spec.runs.len(), "submitted");
+        self.jobs.insert(
+            id,
+            Job {
+                id,
+                name: spec.name.clone(),
+                spec,
+                spec_json: spec_json.to_string(),
+                state: JobState::Queued,
+                runs,
+                stale_reports: 0,
+                error: None,
+            },
+        );
+        Ok((id, warnings))
+    }
+
+    pub fn register(&mut self, req: &v1::RegisterRequest) -> Result<v1::RegisterReply, Status> {
+        if req.protocol_version != PROTOCOL_VERSION {
+            return Err(Status::failed_precondition(format!(
+                "worker speaks protocol version {}, this coordinator speaks {PROTOCOL_VERSION}; \
+                 run the same salient release on both",
+                req.protocol_version
+            )));
+        }
+        if req.threads == 0 || req.threads > 4096 {
+            return Err(Status::invalid_argument(format!(
+                "threads must be in 1..=4096 (got {})",
+                req.threads
+            )));
+        }
+        let id = format!("w{}", self.next_worker);
+        self.next_worker += 1;
+        let name: String = req.name.chars().take(128).collect();
+        tracing::info!(worker = %id, name = %name, threads = req.threads, "worker registered");
+        self.workers.insert(
+            id.clone(),
+            WorkerInfo {
+                name,
+                threads: req.threads,
+                last_seen: Instant::now(),
+                leases: BTreeSet::new(),
+            },
+        );
+        Ok(v1::RegisterReply {
+            worker_id: id,
+            lease_ms: self.cfg.lease.as_millis() as u32,
+            poll_ms: self.cfg.poll.as_millis() as u32,
+        })
+    }
+
+    fn known_worker(&mut self, id: &str) -> Result<(), Status> {
+        match self.workers.get_mut(id) {
+            Some(w) => {
+                w.last_seen = Instant::now();
+                Ok(())
+            }
+            None => Err(Status::not_found(format!(
+                "unknown worker '{id}'; register again"
+            ))),
+        }
+    }
+
+    /// Checks every report against the state before any of them changes it.
+    fn validate_reports(&self, reports: &[v1::TileReport]) -> Result<(), Status> {
+        for r in reports {
+            let lease = r
+                .lease
+                .as_ref()
+                .ok_or_else(|| Status::invalid_argument("report.lease is required"))?;
+            let Some(job) = self.jobs.get(&lease.job) else {
+                if self.store.job(lease.job).map_err(store_err)?.is_some() {
+                    continue; // a finished job: answered, no effect
+                }
+                return Err(Status::invalid_argument(format!(
+                    "report.lease.job {} is not a job",
+                    lease.job
+                )));
+            };
+            let run = job.runs.get(lease.run as usize).ok_or_else(|| {
+                Status::invalid_argument(format!(
+                    "report.lease.run {} out of range 0..{}",
+                    lease.run,
+                    job.runs.len()
+                ))
+            })?;
+            let tile = run.tiles.get(lease.tile as usize).ok_or_else(|| {
+                Status::invalid_argument(format!(
+                    "report.lease.tile {} out of range 0..{}",
+                    lease.tile,
+                    run.tiles.len()
+                ))
+            })?;
+            if lease.attempt == 0 || lease.attempt > tile.attempt {
+                return Err(Status::invalid_argument(format!(
+                    "report.lease.attempt {} was never issued for {} (latest {})",
+                    lease.attempt, lease, tile.attempt
+                )));
+            }
+            for o in &r.outcomes {
+                let checked = outcome_from_wire(o, &run.grid, run.checkpoints)
+                    .map_err(Status::invalid_argument)?;
+                if run.grid.tile_of(checked.cell) != lease.tile as usize {
+                    return Err(Status::invalid_argument(format!(
+                        "outcome.cell {} is not in tile {}",
+                        o.cell, lease.tile
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn apply_reports(
+        &mut self,
+        worker: &str,
+        reports: &[v1::TileReport],
+        out: &mut Replies,
+    ) -> Result<(), Status> {
+        self.validate_reports(reports)?;
+        for r in reports {
+            let lease = r.lease.expect("validated");
+            let key = lease.key();
+            let Some(job) = self.jobs.get_mut(&lease.job) else {
+                out.acknowledged.push(lease);
+                continue;
+            };
+            let run_index = lease.run as usize;
+            let run = &mut job.runs[run_index];
+            let tile = &mut run.tiles[lease.tile as usize];
+            if lease.attempt < tile.attempt || job.state.is_terminal() {
+                if lease.attempt < tile.attempt {
+                    job.stale_reports += 1;
+                    run.stale_orbits += r.outcomes.len() as u64;
+                    let steps: u64 = r.outcomes.iter().map(|o| o.steps).sum();
+                    run.stale_steps += steps;
+                    self.store
+                        .add_counter(job.id, "stale_reports", 1)
+                        .map_err(store_err)?;
+                    self.store
+                        .add_counter(
+                            job.id,
+                            &counter(run_index, "stale_orbits"),
+                            r.outcomes.len() as u64,
+                        )
+                        .map_err(store_err)?;
+                    self.store
+                        .add_counter(job.id, &counter(run_index, "stale_steps"), steps)
+                        .map_err(store_err)?;
+                    tracing::debug!(%lease, worker, "stale report dropped");
+                    out.stale.push(lease);
+                } else {
+                    out.acknowledged.push(lease);
+                }
+                continue;
+            }
+            // Only outcomes for cells without one change anything; repeats are answered OK.
+            let mut seen = HashSet::new();
+            let fresh: Vec<(u32, Vec<u8>, salient_grid::Outcome)> = r
+                .outcomes
+                .iter()
+                .filter(|o| !run.ledger.has_outcome(o.cell) && seen.insert(o.cell))
+                .map(|o| {
+                    let checked =
+                        outcome_from_wire(o, &run.grid, run.checkpoints).expect("validated");
+                    (o.cell, o.encode_to_vec(), checked)
+                })
+                .collect();
+            if !fresh.is_empty() {
+                let blobs: Vec<(u32, &[u8])> =
+                    fresh.iter().map(|(c, b, _)| (*c, b.as_slice())).collect();
+                self.store
+                    .commit_report(&Report {
+                        job: lease.job,
+                        run: lease.run,
+                        tile: lease.tile,
+                        attempt: lease.attempt,
+                        worker,
+                        cpu_ns: r.cpu_ns,
+                        outcomes: &blobs,
+                    })
+                    .map_err(store_err)?;
+                run.cpu_ns += r.cpu_ns;
+                for (_, _, o) in fresh {
+                    run.ledger.offer(o);
+                }
+            }
+            if r.finished && tile.lease.as_ref().is_some_and(|l| l.worker == worker) {
+                tile.lease = None;
+                if let Some(w) = self.workers.get_mut(worker) {
+                    w.leases.remove(&key);
+                }
+            }
+            out.acknowledged.push(lease);
+            self.finish_runs(key.0)?;
+        }
+        Ok(())
+    }
+
+    /// Marks runs whose ledger is done, and the job when all are.
+    fn finish_runs(&mut self, id: u64) -> Result<(), Status> {
+        let Some(job) = self.jobs.get_mut(&id) else {
+            return Ok(());
+        };
+        for (index, run) in job.runs.iter_mut().enumerate() {
+            if run.done || !run.ledger.done() {
+                continue;
+            }
+            run.wall_s = run.elapsed();
+            run.done = true;
+            self.store
+                .add_counter(id, &counter(index, "wall_ms"), (run.wall_s * 1e3) as u64)
+                .map_err(store_err)?;
+            // Speculative leases of a finished run are no longer needed.
+            for (t, tile) in run.tiles.iter_mut().enumerate() {
+                if let Some(l) = tile.lease.take() {
+                    if let Some(w) = self.workers.get_mut(&l.worker) {
+                        w.leases.remove(&(id, index as u32, t as u32));
+                    }
+                }
+            }
+            let c = salient_grid::Counts::of(&run.grid, &run.ledger);
+            let (reg, st, ch) = c.percent();
+            tracing::info!(
+                job = id,
+                run = index,
+                wall_s = run.wall_s,
+                orbits = run.ledger.committed.len(),
+                dropped = run.ledger.dropped,
+                regular = reg,
+                sticky = st,
+                chaotic = ch,
+                "run done"
+            );
+        }
+        if job.runs.iter().all(|r| r.done) && !job.state.is_terminal() {
+            job.state = JobState::Done;
+            self.store
+                .set_job_state(id, JobState::Done, now_ms(), None)
+                .map_err(store_err)?;
+            tracing::info!(job = id, name = %job.name, "job done");
+        }
+        Ok(())
+    }
+
+    /// The next tile with cells that need an orbit, FIFO over jobs and in order over runs and
+    /// tiles (from each run's frontier on), and those cells.
+    fn next_tile(&self) -> Option<(TileKey, Vec<u32>)> {
+        for job in self.jobs.values() {
+            if job.state.is_terminal() {
+                continue;
+            }
+            for (r, run) in job.runs.iter().enumerate() {
+                if run.done {
+                    continue;
+                }
+                let first = run
+                    .grid
+                    .canonical()
+                    .get(run.ledger.frontier())
+                    .map_or(0, |&c| run.grid.tile_of(c));
+                for t in first..run.tiles.len() {
+                    if run.tiles[t].lease.is_some() {
+                        continue;
+                    }
+                    let cells = run.wanted(t);
+                    if !cells.is_empty() {
+                        return Some(((job.id, r as u32, t as u32), cells));
+                    }
+                }
+            }
+        }
+        None
+    }
+
+    fn lease(&mut self, worker: &str, key: TileKey, cells: Vec<u32>) -> Result<v1::Lease, Status> {
+        let job = self.jobs.get_mut(&key.0).expect("leasable job");
+        let run = &mut job.runs[key.1 as usize];
+        let tile = &mut run.tiles[key.2 as usize];
+        let attempt = tile.attempt + 1;
+        self.store
+            .record_attempt(key.0, key.1, key.2, attempt, worker)
+            .map_err(store_err)?;
+        if job.state == JobState::Queued {
+            job.state = JobState::Running;
+            self.store
+                .set_job_state(key.0, JobState::Running, now_ms(), None)
+                .map_err(store_err)?;
+        }
+        run.started.get_or_insert_with(Instant::now);
+        tile.attempt = attempt;
+        tile.lease = Some(ActiveLease {
+            worker: worker.to_string(),
+            deadline: Instant::now() + self.cfg.lease,
+            cells: cells.clone(),
+            skipped: HashSet::new(),
+        });
+        if let Some(w) = self.workers.get_mut(worker) {
+            w.leases.insert(key);
+        }
+        tracing::debug!(
+            job = key.0,
+            run = key.1,
+            tile = key.2,
+            attempt,
+            worker,
+            cells = cells.len(),
+            "leased"
+        );
+        Ok(v1::Lease {
+            lease: Some(tile_ref(key, attempt)),
+            spec_json: job.spec_json.clone(),
+            cells,
+        })
+    }
+
+    /// Renews the leases a worker names; returns those it must stop. A lease the coordinator
+    /// lost (after a restart) is adopted again when it is still the tile's latest attempt.
+    fn renew(&mut self, worker: &str, held: &[v1::TileRef]) -> Vec<v1::TileRef> {
+        let mut revoked = Vec::new();
+        let deadline = Instant::now() + self.cfg.lease;
+        for h in held {
+            let key = h.key();
+            let tile = self
+                .jobs
+                .get_mut(&h.job)
+                .filter(|j| !j.state.is_terminal())
+                .and_then(|j| j.runs.get_mut(h.run as usize))
+                .filter(|r| !r.done)
+                .and_then(|r| r.tiles.get_mut(h.tile as usize));
+            let Some(tile) = tile else {
+                revoked.push(*h);
+                continue;
+            };
+            match &mut tile.lease {
+                Some(l) if l.worker == worker && h.attempt == tile.attempt => l.deadline = deadline,
+                None if h.attempt == tile.attempt && h.attempt > 0 => {
+                    tile.lease = Some(ActiveLease {
+                        worker: worker.to_string(),
+                        deadline,
+                        cells: Vec::new(),
+                        skipped: HashSet::new(),
+                    });
+                    if let Some(w) = self.workers.get_mut(worker) {
+                        w.leases.insert(key);
+                    }
+                }
+                _ => revoked.push(*h),
+            }
+        }
+        revoked
+    }
+
+    /// Cells of the worker's leases that no longer need an orbit, not yet told.
+    fn skips(&mut self, worker: &str) -> Vec<v1::Skip> {
+        let keys: Vec<TileKey> = self
+            .workers
+            .get(worker)
+            .map(|w| w.leases.iter().copied().collect())
+            .unwrap_or_default();
+        let mut out = Vec::new();
+        for key in keys {
+            let Some(run) = self
+                .jobs
+                .get_mut(&key.0)
+                .and_then(|j| j.runs.get_mut(key.1 as usize))
+            else {
+                continue;
+            };
+            let (ledger, tile) = (&run.ledger, &mut run.tiles[key.2 as usize]);
+            let Some(lease) = tile.lease.as_mut() else {
+                continue;
+            };
+            let cells: Vec<u32> = lease
+                .cells
+                .iter()
+                .copied()
+                .filter(|&c| {
+                    !lease.skipped.contains(&c) && !ledger.wants(c) && !ledger.has_outcome(c)
+                })
+                .collect();
+            if !cells.is_empty() {
+                lease.skipped.extend(&cells);
+                out.push(v1::Skip {
+                    lease: Some(tile_ref(key, tile.attempt)),
+                    cells,
+                });
+            }
+        }
+        out
+    }
+
+    pub fn poll(&mut self, req: &v1::PollRequest) -> Result<v1::PollReply, Status> {
+        self.known_worker(&req.worker_id)?;
+        let worker = req.worker_id.as_str();
+        let mut replies = Replies::default();
+        self.apply_reports(worker, &req.reports, &mut replies)?;
+        let revoked = self.renew(worker, &req.held);
+        let mut leases = Vec::new();
+        if !req.draining {
+            for _ in 0..req.free_slots.min(8) {
+                let Some((key, cells)) = self.next_tile() else {
+                    break;
+                };
+                leases.push(self.lease(worker, key, cells)?);
+            }
+        }
+        Ok(v1::PollReply {
+            leases,
+            revoked,
+            skips: self.skips(worker),
+            acknowledged: replies.acknowledged,
+            stale: replies.stale,
+        })
+    }
+
+    pub fn report(&mut self, req: &v1::ReportRequest) -> Result<v1::ReportReply, Status> {
+        self.known_worker(&req.worker_id)?;
+        let mut replies = Replies::default();
+        self.apply_reports(&req.worker_id, &req.reports, &mut replies)?;
+        Ok(v1::ReportReply {
+            acknowledged: replies.acknowledged,
+            stale: replies.stale,
+            skips: self.skips(&req.worker_id),
+        })
+    }
+
+    pub fn renew_only(&mut self, req: &v1::RenewRequest) -> Result<v1::RenewReply, Status> {
+        self.known_worker(&req.worker_id)?;
+        Ok(v1::RenewReply {
+            revoked: self.renew(&req.worker_id, &req.held),
+        })
+    }
+
+    /// Releases the worker's leases (the tiles go to others) and forgets it.
+    pub fn deregister(&mut self, req: &v1::DeregisterRequest) -> Result<(), Status> {
+        self.known_worker(&req.worker_id)?;
+        self.drop_worker(&req.worker_id);
+        tracing::info!(worker = %req.worker_id, released = req.released.len(), "worker left");
+        Ok(())
+    }
+
+    fn drop_worker(&mut self, id: &str) {
+        let Some(w) = self.workers.remove(id) else {
+            return;
+        };
+        for key in w.leases {
+            if let Some(tile) = self
+                .jobs
+                .get_mut(&key.0)
+                .and_then(|j| j.runs.get_mut(key.1 as usize))
+                .and_then(|r| r.tiles.get_mut(key.2 as usize))
+            {
+                if tile.lease.as_ref().is_some_and(|l| l.worker == id) {
+                    tile.lease = None;
+                }
+            }
+        }
+    }
+
+    /// Lapses expired leases and forgets workers silent for three lease periods.
+    pub fn tick(&mut self) {
+        let now = Instant::now();
+        for job in self.jobs.values_mut() {
+            for (r, run) in job.runs.iter_mut().enumerate() {
+                for (t, tile) in run.tiles.iter_mut().enumerate() {
+                    if tile.lease.as_ref().is_some_and(|l| l.deadline < now) {
+                        let l = tile.lease.take().expect("checked");
+                        tracing::warn!(job = job.id, run = r, tile = t, attempt = tile.attempt, worker = %l.worker, "lease lapsed");
+                        if let Some(w) = self.workers.get_mut(&l.worker) {
+                            w.leases.remove(&(job.id, r as u32, t as u32));
+                        }
+                    }
+                }
+            }
+        }
+        let silent: Vec<String> = self
+            .workers
+            .iter()
+            .filter(|(_, w)| now.duration_since(w.last_seen) > 3 * self.cfg.lease)
+            .map(|(id, _)| id.clone())
+            .collect();
+        for id in silent {
+            let name = self
+                .workers
+                .get(&id)
+                .map(|w| w.name.clone())
+                .unwrap_or_default();
+            tracing::warn!(worker = %id, name = %name, "worker silent; forgotten");
+            self.drop_worker(&id);
+        }
+    }
+
+    pub fn cancel(&mut self, id: u64) -> Result<String, Status> {
+        let Some(job) = self.jobs.get_mut(&id) else {
+            let row = self
+                .store
+                .job(id)
+                .map_err(store_err)?
+                .ok_or_else(|| Status::not_found(format!("no job {id}")))?;
+            return Ok(row.state.as_str().to_string());
+        };
+        if !job.state.is_terminal() {
+            job.state = JobState::Cancelled;
+            self.store
+                .set_job_state(id, JobState::Cancelled, now_ms(), None)
+                .map_err(store_err)?;
+            tracing::info!(job = id, "cancelled");
+        }
+        let keys: Vec<(String, TileKey)> = job
+            .runs
+            .iter_mut()
+            .enumerate()
+            .flat_map(|(r, run)| {
+                run.tiles
+                    .iter_mut()
+                    .enumerate()
+                    .filter_map(move |(t, tile)| {
+                        tile.lease
+                            .take()
+                            .map(|l| (l.worker, (id, r as u32, t as u32)))
+                    })
+            })
+            .collect();
+        for (w, key) in keys {
+            if let Some(w) = self.workers.get_mut(&w) {
+                w.leases.remove(&key);
+            }
+        }
+        Ok(job.state.as_str().to_string())
+    }
+
+    pub fn workers(&self) -> u32 {
+        self.workers.len() as u32
+    }
+
+    fn job_status(&self, job: &Job) -> v1::JobStatus {
+        let mut runs = Vec::new();
+        let (mut resolved, mut compatible, mut rate) = (0u64, 0u64, 0.0);
+        for (i, run) in job.runs.iter().enumerate() {
+            let spec = &job.spec.runs[i];
+            let c = run.grid.compatible_count() as u64;
+            let r = run.ledger.resolved() as u64;
+            let orbits = run.ledger.committed.len() as u64 + run.ledger.dropped;
+            let wall = run.elapsed();
+            let orbits_per_s = if wall > 0.0 {
+                orbits as f64 / wall
+            } else {
+                0.0
+            };
+            let eta_s =
+                (wall > 0.0 && r > 0 && !run.done).then(|| (c - r) as f64 * wall / r as f64);
+            if !run.done && run.started.is_some() {
+                rate += orbits_per_s;
+            }
+            resolved += r;
+            compatible += c;
+            runs.push(v1::RunProgress {
+                run: i as u32,
+                method: spec.method.name(),
+                tau: spec.tau,
+                t_final: spec.t_final,
+                delta: spec.delta,
+                compatible: c,
+                resolved: r,
+                orbits,
+                dropped: run.ledger.dropped + run.stale_orbits,
+                orbits_per_s,
+                eta_s,
+                done: run.done,
+                wall_s: wall,
+            });
+        }
+        v1::JobStatus {
+            job: job.id,
+            name: job.name.clone(),
+            state: job.state.as_str().into(),
+            runs_total: job.runs.len() as u32,
+            runs_done: job.runs.iter().filter(|r| r.done).count() as u32,
+            resolved_percent: 100.0 * resolved as f64 / compatible.max(1) as f64,
+            orbits_per_s: rate,
+            workers: self.workers.len() as u32,
+            runs,
+            error: job.error.clone().unwrap_or_default(),
+            stale_reports: job.stale_reports,
+        }
+    }
+
+    /// Status of one job (loaded from the store if finished) or of every job.
+    pub fn status(&self, id: Option<u64>) -> Result<v1::StatusReply, Status> {
+        let jobs = match id {
+            Some(id) => vec![self.with_job(id, |j| self.job_status(j))?],
+            None => {
+                let mut out = Vec::new();
+                for row in self.store.jobs().map_err(store_err)? {
+                    out.push(self.with_job(row.id, |j| self.job_status(j))?);
+                }
+                out
+            }
+        };
+        Ok(v1::StatusReply {
+            jobs,
+            workers: self.workers(),
+        })
+    }
+
+    fn with_job<T>(&self, id: u64, f: impl FnOnce(&Job) -> T) -> Result<T, Status> {
+        match self.jobs.get(&id) {
+            Some(j) => Ok(f(j)),
+            None => Ok(f(&self.load_job(id)?)),
+        }
+    }
+
+    /// The results stream's parts: header, then per run its totals and committed outcomes.
+    pub fn results(&self, id: u64, batch: usize) -> Result<Vec<v1::ResultsChunk>, Status> {
+        use v1::results_chunk::Part;
+        self.with_job(id, |job| {
+            let mut parts = vec![Part::Header(v1::ResultsHeader {
+                job: id,
+                spec_json: job.spec_json.clone(),
+                state: job.state.as_str().into(),
+            })];
+            for (i, run) in job.runs.iter().enumerate() {
+                parts.push(Part::Run(v1::RunHeader {
+                    run: i as u32,
+                    orbits_dropped: run.ledger.dropped + run.stale_orbits,
+                    steps_dropped: run.ledger.dropped_steps + run.stale_steps,
+                    cpu_s: run.cpu_ns as f64 / 1e9,
+                    wall_s: run.elapsed(),
+                    outcomes: run.ledger.committed.len() as u64,
+                }));
+                for chunk in run.ledger.committed.chunks(batch.max(1)) {
+                    parts.push(Part::Outcomes(v1::OutcomeBatch {
+                        run: i as u32,
+                        outcomes: chunk.iter().map(v1::Outcome::from).collect(),
+                    }));
+                }
+            }
+            parts
+                .into_iter()
+                .map(|p| v1::ResultsChunk { part: Some(p) })
+                .collect()
+        })
+    }
+
+    /// Whether the job is finished (done, cancelled or failed); unknown jobs are an error.
+    pub fn is_finished(&self, id: u64) -> Result<bool, Status> {
+        self.with_job(id, |j| j.state.is_terminal())
+    }
+
+    /// Status lines for the periodic progress log.
+    pub fn log_progress(&self) {
+        for job in self.jobs.values().filter(|j| j.state == JobState::Running) {
+            let s = self.job_status(job);
+            for r in s.runs.iter().filter(|r| !r.done && r.orbits > 0) {
+                tracing::info!(
+                    job = job.id,
+                    run = r.run,
+                    method = %r.method,
+                    tau = r.tau,
+                    t_final = r.t_final,
+                    resolved = r.resolved,
+                    compatible = r.compatible,
+                    orbits_per_s = r.orbits_per_s,
+                    eta_s = r.eta_s.unwrap_or(f64::NAN),
+                    workers = s.workers,
+                    worker_threads = self.workers.values().map(|w| w.threads).sum::<u32>(),
+                    dropped = r.dropped,
+                    "progress"
+                );
+            }
+        }
+    }
+
+    /// Forgets finished jobs' in-memory state (the store keeps them).
+    pub fn retire_finished(&mut self) {
+        self.jobs.retain(|_, j| !j.state.is_terminal());
+    }
+}

@@ -1,0 +1,1264 @@
+//! Job specs (TOML, or JSON with the same schema): parsed strictly, validated up front, every
+//! problem reported as one line naming the field by its table path and the allowed range.
+//!
+//! Both syntaxes are first read into a `serde_json::Value` (TOML's `nan`/`inf` kept as a marker
+//! so they are reported as non-finite, not as a type error), then walked field by field with the
+//! path in hand. A derived `Deserialize` would only say "invalid type: string, expected f64"
+//! without saying where in a JSON document; walking by hand names `grid.cells[1]`.
+
+use crate::executor::CellRun;
+use crate::geometry::Grid;
+use salient_core::adaptive::Protocol;
+use salient_core::orbit::{Deviation, OrbitConfig, Thresholds};
+use salient_core::run::MethodRun;
+use salient_core::Method;
+use serde::Serialize;
+use serde_json::{Map, Value};
+use std::fmt;
+
+/// Largest grid a spec may ask for.
+const MAX_CELLS: usize = 16_000_000;
+/// Largest number of steps τ in one run.
+const MAX_STEPS: f64 = 1e12;
+/// Cells per axis.
+const MAX_AXIS: usize = 4000;
+/// Tiles per axis when the spec gives none (clipped to the cells).
+const DEFAULT_TILE: usize = 20;
+
+pub use crate::ledger::Mode;
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct GridSpec {
+    pub n_q2: usize,
+    pub n_p2: usize,
+    pub tile_q2: usize,
+    pub tile_p2: usize,
+    pub mode: Mode,
+    pub q2_range: (f64, f64),
+    pub p2_range: (f64, f64),
+}
+
+/// One member of the sweep (the Cartesian product method × tau × t_final × delta; delta only
+/// varies for adaptive methods: `tm-*` methods get `None` and appear once per (tau, t_final)).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RunSpec {
+    pub method: Method,
+    pub tau: f64,
+    pub t_final: f64,
+    /// The tolerance of an adaptive method, as honoured (None for tangent-map methods).
+    pub delta: Option<f64>,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct JobSpec {
+    pub name: String,
+    pub energy: f64,
+    pub grid: GridSpec,
+    pub runs: Vec<RunSpec>,
+    pub protocol: Protocol,
+    pub deviation: Deviation,
+    pub thresholds: Thresholds,
+    /// Things the user should know but that do not stop the job (a clamped delta, an ignored
+    /// field), one line each.
+    pub warnings: Vec<String>,
+    /// The spec as parsed (absent optional fields as null), for run.json.
+    pub source: serde_json::Value,
+}
+
+/// Checkpoints per decade of t at which full-mode orbits are also classified (Fig. 7).
+pub const CHECKPOINTS_PER_DECADE: u32 = 4;
+
+impl JobSpec {
+    /// The section grid every run of the job covers.
+    pub fn grid(&self) -> Grid {
+        let g = &self.grid;
+        Grid::new(
+            self.energy,
+            g.n_q2,
+            g.n_p2,
+            g.q2_range,
+            g.p2_range,
+            (g.tile_q2, g.tile_p2),
+        )
+    }
+
+    /// How every cell's orbit of run `index` is integrated.
+    pub fn cell_run(&self, index: usize) -> CellRun {
+        let r = &self.runs[index];
+        CellRun {
+            run: MethodRun {
+                method: r.method.clone(),
+                delta: r.delta,
+                protocol: self.protocol,
+            },
+            config: OrbitConfig {
+                tau: r.tau,
+                t_final: r.t_final,
+                thresholds: self.thresholds,
+                deviation: self.deviation,
+                escape_radius: None,
+            },
+            checkpoints_per_decade: match self.grid.mode {
+                Mode::Full => CHECKPOINTS_PER_DECADE,
+                Mode::FastPss => 0,
+            },
+        }
+    }
+}
+
+/// The spec as read, before validation; every number in it is finite.
+#[derive(Serialize)]
+struct RawSpec {
+    name: Option<String>,
+    system: RawSystem,
+    grid: RawGrid,
+    sweep: RawSweep,
+    integration: Option<RawIntegration>,
+    classify: Option<RawClassify>,
+}
+
+#[derive(Serialize)]
+struct RawSystem {
+    kind: String,
+    energy: f64,
+}
+
+#[derive(Serialize)]
+struct RawGrid {
+    cells: Vec<i128>,
+    tile: Option<Vec<i128>>,
+    mode: Option<String>,
+    q2: Option<Vec<f64>>,
+    p2: Option<Vec<f64>>,
+}
+
+#[derive(Serialize)]
+struct RawSweep {
+    method: Vec<String>,
+    tau: Vec<f64>,
+    t_final: Vec<f64>,
+    delta: Option<Vec<f64>>,
+}
+
+#[derive(Serialize)]
+struct RawIntegration {
+    protocol: Option<String>,
+    deviation: Option<String>,
+    seed: Option<u64>,
+}
+
+#[derive(Serialize)]
+struct RawClassify {
+    regular: Option<f64>,
+    chaotic: Option<f64>,
+    early_stop: Option<bool>,
+}
+
+/// A spec that cannot run: one line naming the field and the allowed range.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SpecError(pub String);
+
+impl fmt::Display for SpecError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for SpecError {}
+
+pub type SpecResult<T> = Result<T, SpecError>;
+
+/// A usage error, forced onto one line whatever the user's strings held.
+fn usage(msg: impl Into<String>) -> SpecError {
+    let msg: String = msg.into();
+    SpecError(msg.replace('\r', "\\r").replace('\n', "\\n"))
+}
+
+fn first_line(s: &str) -> &str {
+    s.lines().next().unwrap_or("")
+}
+
+/// Whether a spec's text is JSON: its file name ends in `.json` or it starts with `{` (after
+/// whitespace); TOML otherwise.
+pub fn is_json(file_name: &str, text: &str) -> bool {
+    file_name.ends_with(".json") || text.trim_start().starts_with('{')
+}
+
+/// Parses and validates a spec's text (`json`: the JSON form, else TOML).
+pub fn parse(text: &str, json: bool) -> SpecResult<JobSpec> {
+    let value = if json {
+        serde_json::from_str::<Value>(text).map_err(|e| {
+            usage(format!(
+                "spec is not valid JSON: {}",
+                first_line(&e.to_string())
+            ))
+        })?
+    } else {
+        let table = text.parse::<toml::Table>().map_err(|e| {
+            let msg = first_line(e.message());
+            match e.span() {
+                Some(span) => {
+                    let (line, content) = line_at(text, span.start);
+                    usage(format!("spec line {line} (`{content}`): {msg}"))
+                }
+                None => usage(format!("spec is not valid TOML: {msg}")),
+            }
+        })?;
+        toml_to_json(toml::Value::Table(table))
+    };
+    validate(read_raw(&value)?)
+}
+
+/// The number and trimmed text of the line holding byte offset `at`.
+fn line_at(text: &str, at: usize) -> (usize, &str) {
+    let mut at = at.min(text.len());
+    while !text.is_char_boundary(at) {
+        at -= 1;
+    }
+    let start = text[..at].rfind('\n').map_or(0, |i| i + 1);
+    let end = text[start..].find('\n').map_or(text.len(), |i| start + i);
+    (
+        text[..start].matches('\n').count() + 1,
+        text[start..end].trim(),
+    )
+}
+
+/// Prefix of the string that stands in for a non-finite TOML float (`nan`, `inf`) in the JSON
+/// value, so the reader can say "must be a finite number (got NaN)" at the right path.
+const NON_FINITE: &str = "\u{0}non-finite\u{0}";
+
+fn toml_to_json(v: toml::Value) -> Value {
+    match v {
+        toml::Value::String(s) => Value::String(s),
+        toml::Value::Integer(i) => Value::from(i),
+        toml::Value::Float(f) => serde_json::Number::from_f64(f)
+            .map(Value::Number)
+            .unwrap_or_else(|| Value::String(format!("{NON_FINITE}{f}"))),
+        toml::Value::Boolean(b) => Value::Bool(b),
+        toml::Value::Datetime(d) => Value::String(d.to_string()),
+        toml::Value::Array(a) => Value::Array(a.into_iter().map(toml_to_json).collect()),
+        toml::Value::Table(t) => {
+            Value::Object(t.into_iter().map(|(k, v)| (k, toml_to_json(v))).collect())
+        }
+    }
+}
+
+/// "1 value", "3 values".
+fn count(n: usize) -> String {
+    if n == 1 {
+        "1 value".into()
+    } else {
+        format!("{n} values")
+    }
+}
+
+/// A value as the user wrote it, for "(got ...)".
+fn describe(v: &Value) -> String {
+    match v {
+        Value::Null => "null".into(),
+        Value::Bool(b) => b.to_string(),
+        Value::Number(n) => n.to_string(),
+        Value::String(s) => match s.strip_prefix(NON_FINITE) {
+            Some(f) => f.to_string(),
+            None => format!("{s:?}"),
+        },
+        Value::Array(a) => format!("a list of {}", count(a.len())),
+        Value::Object(_) => "a table".into(),
+    }
+}
+
+type Read<T> = fn(&Value, &str) -> SpecResult<T>;
+
+fn number(v: &Value, path: &str) -> SpecResult<f64> {
+    match v {
+        Value::Number(n) => match n.as_f64() {
+            Some(x) if x.is_finite() => Ok(x),
+            _ => Err(usage(format!("{path} must be a finite number (got {n})"))),
+        },
+        Value::String(s) if s.starts_with(NON_FINITE) => Err(usage(format!(
+            "{path} must be a finite number (got {})",
+            describe(v)
+        ))),
+        _ => Err(usage(format!(
+            "{path} must be a number (got {})",
+            describe(v)
+        ))),
+    }
+}
+
+fn integer(v: &Value, path: &str) -> SpecResult<i128> {
+    let n = match v {
+        Value::Number(n) => n.as_i64().map(i128::from).or(n.as_u64().map(i128::from)),
+        _ => None,
+    };
+    n.ok_or_else(|| usage(format!("{path} must be an integer (got {})", describe(v))))
+}
+
+fn seed(v: &Value, path: &str) -> SpecResult<u64> {
+    v.as_u64().ok_or_else(|| {
+        usage(format!(
+            "{path} must be an integer in 0..={} (got {})",
+            u64::MAX,
+            describe(v)
+        ))
+    })
+}
+
+fn string(v: &Value, path: &str) -> SpecResult<String> {
+    match v {
+        Value::String(s) if !s.starts_with(NON_FINITE) => Ok(s.clone()),
+        _ => Err(usage(format!(
+            "{path} must be a string (got {})",
+            describe(v)
+        ))),
+    }
+}
+
+fn boolean(v: &Value, path: &str) -> SpecResult<bool> {
+    v.as_bool().ok_or_else(|| {
+        usage(format!(
+            "{path} must be true or false (got {})",
+            describe(v)
+        ))
+    })
+}
+
+fn list<T>(v: &Value, path: &str, read: Read<T>) -> SpecResult<Vec<T>> {
+    let Value::Array(items) = v else {
+        return Err(usage(format!(
+            "{path} must be a list (got {})",
+            describe(v)
+        )));
+    };
+    items
+        .iter()
+        .enumerate()
+        .map(|(k, x)| read(x, &format!("{path}[{k}]")))
+        .collect()
+}
+
+/// One table of the spec, with its path ("" for the top level).
+struct Table<'a> {
+    path: String,
+    obj: &'a Map<String, Value>,
+}
+
+impl<'a> Table<'a> {
+    /// `v` as the table at `path`, refusing any key not in `allowed`.
+    fn new(v: &'a Value, path: &str, allowed: &[&str]) -> SpecResult<Table<'a>> {
+        let Value::Object(obj) = v else {
+            return Err(usage(if path.is_empty() {
+                format!("the spec must be a table of sections (got {})", describe(v))
+            } else {
+                format!("[{path}] must be a table (got {})", describe(v))
+            }));
+        };
+        if let Some(k) = obj.keys().find(|k| !allowed.contains(&k.as_str())) {
+            let place = if path.is_empty() {
+                "at the top level".to_string()
+            } else {
+                format!("in [{path}]")
+            };
+            return Err(usage(format!(
+                "unknown field '{k}' {place} (allowed: {})",
+                allowed.join(", ")
+            )));
+        }
+        Ok(Table {
+            path: path.to_string(),
+            obj,
+        })
+    }
+
+    fn path(&self, key: &str) -> String {
+        if self.path.is_empty() {
+            key.to_string()
+        } else {
+            format!("{}.{key}", self.path)
+        }
+    }
+
+    /// The value at `key`; absent and null are the same.
+    fn get(&self, key: &str) -> Option<&'a Value> {
+        self.obj.get(key).filter(|v| !v.is_null())
+    }
+
+    fn opt<T>(&self, key: &str, read: Read<T>) -> SpecResult<Option<T>> {
+        self.get(key).map(|v| read(v, &self.path(key))).transpose()
+    }
+
+    fn req<T>(&self, key: &str, read: Read<T>) -> SpecResult<T> {
+        let path = self.path(key);
+        let v = self
+            .get(key)
+            .ok_or_else(|| usage(format!("{path} is required")))?;
+        read(v, &path)
+    }
+
+    fn opt_list<T>(&self, key: &str, read: Read<T>) -> SpecResult<Option<Vec<T>>> {
+        self.get(key)
+            .map(|v| list(v, &self.path(key), read))
+            .transpose()
+    }
+
+    fn req_list<T>(&self, key: &str, read: Read<T>) -> SpecResult<Vec<T>> {
+        let path = self.path(key);
+        let v = self
+            .get(key)
+            .ok_or_else(|| usage(format!("{path} is required")))?;
+        list(v, &path, read)
+    }
+
+    fn opt_table(&self, key: &str, allowed: &[&str]) -> SpecResult<Option<Table<'a>>> {
+        self.get(key)
+            .map(|v| Table::new(v, &self.path(key), allowed))
+            .transpose()
+    }
+
+    fn req_table(&self, key: &str, allowed: &[&str]) -> SpecResult<Table<'a>> {
+        self.opt_table(key, allowed)?
+            .ok_or_else(|| usage(format!("the [{}] table is required", self.path(key))))
+    }
+}
+
+/// Reads the spec's fields with their types; no ranges yet.
+fn read_raw(v: &Value) -> SpecResult<RawSpec> {
+    let top = Table::new(
+        v,
+        "",
+        &["name", "system", "grid", "sweep", "integration", "classify"],
+    )?;
+    let system = top.req_table("system", &["kind", "energy"])?;
+    let grid = top.req_table("grid", &["cells", "tile", "mode", "q2", "p2"])?;
+    let sweep = top.req_table("sweep", &["method", "tau", "t_final", "delta"])?;
+    let integration = top.opt_table("integration", &["protocol", "deviation", "seed"])?;
+    let classify = top.opt_table("classify", &["regular", "chaotic", "early_stop"])?;
+    Ok(RawSpec {
+        name: top.opt("name", string)?,
+        system: RawSystem {
+            kind: system.req("kind", string)?,
+            energy: system.req("energy", number)?,
+        },
+        grid: RawGrid {
+            cells: grid.req_list("cells", integer)?,
+            tile: grid.opt_list("tile", integer)?,
+            mode: grid.opt("mode", string)?,
+            q2: grid.opt_list("q2", number)?,
+            p2: grid.opt_list("p2", number)?,
+        },
+        sweep: RawSweep {
+            method: sweep.req_list("method", string)?,
+            tau: sweep.req_list("tau", number)?,
+            t_final: sweep.req_list("t_final", number)?,
+            delta: sweep.opt_list("delta", number)?,
+        },
+        integration: match integration {
+            Some(t) => Some(RawIntegration {
+                protocol: t.opt("protocol", string)?,
+                deviation: t.opt("deviation", string)?,
+                seed: t.opt("seed", seed)?,
+            }),
+            None => None,
+        },
+        classify: match classify {
+            Some(t) => Some(RawClassify {
+                regular: t.opt("regular", number)?,
+                chaotic: t.opt("chaotic", number)?,
+                early_stop: t.opt("early_stop", boolean)?,
+            }),
+            None => None,
+        },
+    })
+}
+
+fn finite_positive(field: &str, v: f64) -> SpecResult<f64> {
+    if v.is_finite() && v > 0.0 {
+        Ok(v)
+    } else {
+        Err(usage(format!(
+            "{field} must be a finite number > 0 (got {v})"
+        )))
+    }
+}
+
+/// Two integers, the k-th in 1..=max[k].
+fn pair_usize(field: &str, v: &[i128], max: [usize; 2]) -> SpecResult<[usize; 2]> {
+    if v.len() != 2 {
+        return Err(usage(format!(
+            "{field} must be a list of two integers (got {})",
+            count(v.len())
+        )));
+    }
+    let mut out = [0usize; 2];
+    for k in 0..2 {
+        if v[k] < 1 || v[k] > max[k] as i128 {
+            return Err(usage(format!(
+                "{field}[{k}] must be in 1..={} (got {})",
+                max[k], v[k]
+            )));
+        }
+        out[k] = v[k] as usize;
+    }
+    Ok(out)
+}
+
+/// A `[lo, hi]` override of the section bounds, which must lie within the allowed region.
+fn range(
+    field: &str,
+    v: &Option<Vec<f64>>,
+    allowed: (f64, f64),
+    energy: f64,
+) -> SpecResult<(f64, f64)> {
+    let Some(v) = v else { return Ok(allowed) };
+    if v.len() != 2 {
+        return Err(usage(format!(
+            "{field} must be a list of two numbers [lo, hi] (got {})",
+            count(v.len())
+        )));
+    }
+    let (lo, hi) = (v[0], v[1]);
+    if lo >= hi {
+        return Err(usage(format!(
+            "{field} must have lo < hi (got [{lo}, {hi}])"
+        )));
+    }
+    // The bounds are roots computed in floating point; allow a few ulps for a user who types
+    // them from the design notes.
+    let tol = 1e-12;
+    if lo < allowed.0 - tol || hi > allowed.1 + tol {
+        return Err(usage(format!(
+            "{field} must lie within [{}, {}] at energy {energy} (got [{lo}, {hi}])",
+            allowed.0, allowed.1
+        )));
+    }
+    Ok((lo, hi))
+}
+
+/// Default section bounds of Hénon–Heiles at energy H (0 < H < 1/6): q2 between the two real
+/// roots of q2² − (2/3) q2³ = 2H that bracket 0, p2 in [−√(2H), √(2H)].
+pub fn default_bounds(energy: f64) -> ((f64, f64), (f64, f64)) {
+    let f = |q: f64| q * q - 2.0 * q * q * q / 3.0 - 2.0 * energy;
+    // f(0) = −2H < 0; f(1) = 1/3 − 2H > 0 and f(−2) = 4 + 16/3 − 2H > 0, so bisection between 0
+    // and each of them converges to the roots that bracket 0.
+    let bisect = |mut neg: f64, mut pos: f64| {
+        for _ in 0..200 {
+            let mid = 0.5 * (neg + pos);
+            if mid == neg || mid == pos {
+                break;
+            }
+            if f(mid) < 0.0 {
+                neg = mid;
+            } else {
+                pos = mid;
+            }
+        }
+        0.5 * (neg + pos)
+    };
+    let p = (2.0 * energy).sqrt();
+    ((bisect(0.0, -2.0), bisect(0.0, 1.0)), (-p, p))
+}
+
+fn validate(raw: RawSpec) -> SpecResult<JobSpec> {
+    let source = serde_json::to_value(&raw).expect("a read spec holds only finite numbers");
+    let mut warnings = Vec::new();
+
+    let name = raw.name.unwrap_or_else(|| "salient".into());
+    if name.trim().is_empty() || name.contains(['/', '\\']) || name.contains(char::is_control) {
+        return Err(usage(format!(
+            "name must be non-empty, without path separators or control characters (got {name:?})"
+        )));
+    }
+    if raw.system.kind != "henon-heiles" {
+        return Err(usage(format!(
+            "system.kind must be \"henon-heiles\" (got {:?})",
+            raw.system.kind
+        )));
+    }
+    let energy = raw.system.energy;
+    if !(energy.is_finite() && energy > 0.0 && energy < 1.0 / 6.0) {
+        return Err(usage(format!(
+            "system.energy must be in (0, 1/6) (got {energy})"
+        )));
+    }
+
+    let g = &raw.grid;
+    let [n_q2, n_p2] = pair_usize("grid.cells", &g.cells, [MAX_AXIS, MAX_AXIS])?;
+    if n_q2 * n_p2 > MAX_CELLS {
+        return Err(usage(format!(
+            "grid.cells must hold at most {MAX_CELLS} cells in all (got {n_q2} × {n_p2} = {})",
+            n_q2 * n_p2
+        )));
+    }
+    let tile = match &g.tile {
+        Some(t) => pair_usize("grid.tile", t, [n_q2, n_p2])?,
+        None => [DEFAULT_TILE.min(n_q2), DEFAULT_TILE.min(n_p2)],
+    };
+    let mode = match g.mode.as_deref().unwrap_or("fast-pss") {
+        "fast-pss" => Mode::FastPss,
+        "full" => Mode::Full,
+        other => {
+            return Err(usage(format!(
+                "grid.mode must be \"fast-pss\" or \"full\" (got {other:?})"
+            )))
+        }
+    };
+    let (dq, dp) = default_bounds(energy);
+    let q2_range = range("grid.q2", &g.q2, dq, energy)?;
+    let p2_range = range("grid.p2", &g.p2, dp, energy)?;
+
+    let s = &raw.sweep;
+    for (field, len) in [
+        ("sweep.method", s.method.len()),
+        ("sweep.tau", s.tau.len()),
+        ("sweep.t_final", s.t_final.len()),
+    ] {
+        if len == 0 {
+            return Err(usage(format!("{field} must list at least one value")));
+        }
+    }
+    let methods = s
+        .method
+        .iter()
+        .enumerate()
+        .map(|(k, m)| Method::parse(m).map_err(|e| usage(format!("sweep.method[{k}]: {e}"))))
+        .collect::<SpecResult<Vec<_>>>()?;
+    for (k, &t) in s.tau.iter().enumerate() {
+        finite_positive(&format!("sweep.tau[{k}]"), t)?;
+    }
+    let tau_max = s.tau.iter().copied().fold(0.0, f64::max);
+    let (k_min, tau_min) =
+        s.tau
+            .iter()
+            .copied()
+            .enumerate()
+            .fold(
+                (0, f64::INFINITY),
+                |a, (k, t)| if t < a.1 { (k, t) } else { a },
+            );
+    for (k, &t) in s.t_final.iter().enumerate() {
+        if !(t.is_finite() && t >= tau_max) {
+            return Err(usage(format!(
+                "sweep.t_final[{k}] must be a finite number ≥ every sweep.tau (≥ {tau_max}) (got {t})"
+            )));
+        }
+        if t / tau_min > MAX_STEPS {
+            return Err(usage(format!(
+                "sweep.t_final[{k}] / sweep.tau[{k_min}] = {:.3e} steps of tau; at most {MAX_STEPS:e} are allowed",
+                t / tau_min
+            )));
+        }
+    }
+    let adaptive = methods.iter().any(Method::is_adaptive);
+    let deltas = match &s.delta {
+        Some(d) => {
+            for (k, &x) in d.iter().enumerate() {
+                finite_positive(&format!("sweep.delta[{k}]"), x)?;
+            }
+            if adaptive && d.is_empty() {
+                return Err(usage(
+                    "sweep.delta must list at least one value for the adaptive methods (dop853, taylor, taylor-dd)",
+                ));
+            }
+            if !adaptive && !d.is_empty() {
+                warnings.push(
+                    "sweep.delta is ignored: no method in sweep.method is adaptive".to_string(),
+                );
+            }
+            d.clone()
+        }
+        None if adaptive => {
+            return Err(usage(
+                "sweep.delta is required with an adaptive method (dop853, taylor, taylor-dd)",
+            ))
+        }
+        None => Vec::new(),
+    };
+
+    let integ = raw.integration.as_ref();
+    let protocol = match integ
+        .and_then(|i| i.protocol.as_deref())
+        .unwrap_or("restart")
+    {
+        "restart" => Protocol::Restart,
+        "free" => Protocol::Free,
+        other => {
+            return Err(usage(format!(
+                "integration.protocol must be \"restart\" or \"free\" (got {other:?})"
+            )))
+        }
+    };
+    let seed = integ.and_then(|i| i.seed);
+    let deviation = match integ.and_then(|i| i.deviation.as_deref()).unwrap_or("axes") {
+        "axes" => {
+            if seed.is_some() {
+                warnings.push(
+                    "integration.seed is ignored with integration.deviation = \"axes\"".into(),
+                );
+            }
+            Deviation::Axes
+        }
+        "random" => Deviation::Random {
+            seed: seed.unwrap_or(1),
+        },
+        other => {
+            return Err(usage(format!(
+                "integration.deviation must be \"axes\" or \"random\" (got {other:?})"
+            )))
+        }
+    };
+
+    let c = raw.classify.as_ref();
+    let defaults = Thresholds::default();
+    let regular = c.and_then(|c| c.regular).unwrap_or(defaults.regular);
+    let chaotic = c.and_then(|c| c.chaotic).unwrap_or(defaults.chaotic);
+    finite_positive("classify.chaotic", chaotic)?;
+    if !(regular.is_finite() && regular <= 2f64.sqrt()) {
+        return Err(usage(format!(
+            "classify.regular must be ≤ √2, the largest SALI (got {regular})"
+        )));
+    }
+    if chaotic > regular {
+        return Err(usage(format!(
+            "classify.chaotic must be ≤ classify.regular (got chaotic = {chaotic}, regular = {regular})"
+        )));
+    }
+    let thresholds = Thresholds {
+        regular,
+        chaotic,
+        early_stop: c.and_then(|c| c.early_stop).unwrap_or(defaults.early_stop),
+    };
+
+    let mut runs = Vec::new();
+    for &tau in &s.tau {
+        for &t_final in &s.t_final {
+            for m in &methods {
+                if !m.is_adaptive() {
+                    runs.push(RunSpec {
+                        method: m.clone(),
+                        tau,
+                        t_final,
+                        delta: None,
+                    });
+                    continue;
+                }
+                for &d in &deltas {
+                    let (delta, warning) = m.honoured_delta(d);
+                    if let Some(w) = warning {
+                        if !warnings.contains(&w) {
+                            warnings.push(w);
+                        }
+                    }
+                    runs.push(RunSpec {
+                        method: m.clone(),
+                        tau,
+                        t_final,
+                        delta: Some(delta),
+                    });
+                }
+            }
+        }
+    }
+    Ok(JobSpec {
+        name,
+        energy,
+        grid: GridSpec {
+            n_q2,
+            n_p2,
+            tile_q2: tile[0],
+            tile_p2: tile[1],
+            mode,
+            q2_range,
+            p2_range,
+        },
+        runs,
+        protocol,
+        deviation,
+        thresholds,
+        warnings,
+        source,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GOOD: &str = r#"
+name = "t"
+[system]
+kind = "henon-heiles"
+energy = 0.125
+[grid]
+cells = [40, 30]
+tile = [10, 10]
+mode = "full"
+[sweep]
+method = ["tm-sbab2c", "dop853"]
+tau = [0.5, 0.05]
+t_final = [1e3]
+delta = [1e-5, 1e-8]
+[integration]
+protocol = "free"
+deviation = "random"
+seed = 7
+[classify]
+regular = 1e-3
+chaotic = 1e-9
+early_stop = false
+"#;
+
+    const GOOD_JSON: &str = r#"{
+  "name": "t",
+  "system": {"kind": "henon-heiles", "energy": 0.125},
+  "grid": {"cells": [40, 30], "tile": [10, 10], "mode": "full"},
+  "sweep": {"method": ["tm-sbab2c", "dop853"], "tau": [0.5, 0.05], "t_final": [1000],
+            "delta": [1e-5, 1e-8]},
+  "integration": {"protocol": "free", "deviation": "random", "seed": 7},
+  "classify": {"regular": 1e-3, "chaotic": 1e-9, "early_stop": false}
+}"#;
+
+    const MINIMAL: &str = r#"
+[system]
+kind = "henon-heiles"
+energy = 0.125
+[grid]
+cells = [10, 300]
+[sweep]
+method = ["tm-sbab2c"]
+tau = [0.05]
+t_final = [1e3]
+"#;
+
+    fn usage_message<T: std::fmt::Debug>(r: SpecResult<T>) -> String {
+        match r {
+            Err(SpecError(msg)) => msg,
+            other => panic!("expected a usage error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn a_full_spec_parses_into_the_sweeps_cartesian_product() {
+        let j = parse(GOOD, false).unwrap();
+        // 2 τ × 1 t_final × (tm once + dop853 × 2 δ)
+        assert_eq!(j.runs.len(), 6);
+        assert_eq!(j.runs.iter().filter(|r| r.delta.is_none()).count(), 2);
+        assert!(j
+            .runs
+            .iter()
+            .all(|r| r.method.is_adaptive() == r.delta.is_some()));
+        let dop: Vec<_> = j
+            .runs
+            .iter()
+            .filter(|r| r.method == Method::Dop853)
+            .map(|r| (r.tau, r.delta.unwrap()))
+            .collect();
+        assert_eq!(dop, [(0.5, 1e-5), (0.5, 1e-8), (0.05, 1e-5), (0.05, 1e-8)]);
+        assert!(j.runs.iter().all(|r| r.t_final == 1e3));
+        assert_eq!(j.name, "t");
+        assert_eq!(j.energy, 0.125);
+        assert_eq!(j.grid.mode, Mode::Full);
+        assert_eq!(
+            (j.grid.n_q2, j.grid.n_p2, j.grid.tile_q2, j.grid.tile_p2),
+            (40, 30, 10, 10)
+        );
+        let (q2, p2) = default_bounds(0.125);
+        assert_eq!((j.grid.q2_range, j.grid.p2_range), (q2, p2));
+        assert_eq!(j.protocol, Protocol::Free);
+        assert_eq!(j.deviation, Deviation::Random { seed: 7 });
+        assert_eq!(
+            j.thresholds,
+            Thresholds {
+                regular: 1e-3,
+                chaotic: 1e-9,
+                early_stop: false
+            }
+        );
+        assert!(j.warnings.is_empty(), "{:?}", j.warnings);
+        // The recorded source reads back to the same job.
+        let json = serde_json::to_string(&j.source).unwrap();
+        assert_eq!(parse(&json, true).unwrap(), j);
+    }
+
+    #[test]
+    fn the_json_form_is_the_same_job() {
+        assert_eq!(parse(GOOD_JSON, true).unwrap(), parse(GOOD, false).unwrap());
+    }
+
+    #[test]
+    fn a_minimal_spec_gets_the_defaults() {
+        let j = parse(MINIMAL, false).unwrap();
+        assert_eq!(j.name, "salient");
+        assert_eq!(j.grid.mode, Mode::FastPss);
+        // The default 20 × 20 tile, clipped to the 10 cells along q2.
+        assert_eq!((j.grid.tile_q2, j.grid.tile_p2), (10, 20));
+        assert_eq!(j.protocol, Protocol::Restart);
+        assert_eq!(j.deviation, Deviation::Axes);
+        assert_eq!(j.thresholds, Thresholds::default());
+        assert_eq!(
+            j.runs,
+            [RunSpec {
+                method: Method::parse("tm-sbab2c").unwrap(),
+                tau: 0.05,
+                t_final: 1e3,
+                delta: None
+            }]
+        );
+        assert!(j.warnings.is_empty());
+        // The largest grid (each axis at most 4000, 16e6 cells in all) is accepted.
+        let big = parse(&MINIMAL.replace("[10, 300]", "[4000, 4000]"), false).unwrap();
+        assert_eq!((big.grid.n_q2, big.grid.n_p2), (4000, 4000));
+        // Random deviation vectors without a seed use seed 1.
+        let j = parse(
+            &format!("{MINIMAL}[integration]\ndeviation = \"random\"\n"),
+            false,
+        )
+        .unwrap();
+        assert_eq!(j.deviation, Deviation::Random { seed: 1 });
+    }
+
+    #[test]
+    fn warnings_for_clamped_and_ignored_values() {
+        let text = GOOD.replace("delta = [1e-5, 1e-8]", "delta = [1e-20]");
+        let j = parse(&text, false).unwrap();
+        // Clamped to what DOP853 honours, warned once although two runs use it.
+        assert!(j
+            .runs
+            .iter()
+            .filter(|r| r.method == Method::Dop853)
+            .all(|r| r.delta == Some(salient_core::method::DOP853_MIN_DELTA)));
+        assert_eq!(j.warnings.len(), 1, "{:?}", j.warnings);
+
+        let text = format!("{MINIMAL}[integration]\nseed = 3\n")
+            .replace("t_final = [1e3]", "t_final = [1e3]\ndelta = [1e-9]");
+        let j = parse(&text, false).unwrap();
+        assert_eq!(j.runs.len(), 1);
+        assert_eq!(j.warnings.len(), 2, "{:?}", j.warnings);
+        assert!(j.warnings[0].contains("sweep.delta"));
+        assert!(j.warnings[1].contains("integration.seed"));
+    }
+
+    #[test]
+    fn default_bounds_are_the_allowed_region() {
+        let ((a, b), (c, d)) = default_bounds(0.125);
+        // The design notes' values, to 17 digits.
+        #[allow(clippy::excessive_precision)]
+        let (lo, hi) = (-0.43969262078590838, 0.67364817766693035);
+        assert!((a - lo).abs() < 1e-14, "{a}");
+        assert!((b - hi).abs() < 1e-14, "{b}");
+        assert!((a - (0.5 + 160f64.to_radians().cos())).abs() < 1e-14);
+        assert!((b - (0.5 + 80f64.to_radians().cos())).abs() < 1e-14);
+        assert_eq!((c, d), (-0.5, 0.5));
+        // Other energies: roots of q² − ⅔q³ = 2H on both sides of 0.
+        for h in [1e-6, 0.01, 0.1, 0.16] {
+            let ((lo, hi), (plo, phi)) = default_bounds(h);
+            assert!(lo < 0.0 && 0.0 < hi && hi < 1.0);
+            for q in [lo, hi] {
+                assert!(
+                    (q * q - 2.0 * q * q * q / 3.0 - 2.0 * h).abs() < 1e-15,
+                    "{h} {q}"
+                );
+            }
+            assert_eq!((plo, phi), (-(2.0 * h).sqrt(), (2.0 * h).sqrt()));
+        }
+    }
+
+    #[test]
+    fn messages_read_as_documented() {
+        let cases = [
+            (
+                GOOD.replace("energy = 0.125", "energy = 0.3"),
+                "system.energy must be in (0, 1/6) (got 0.3)",
+            ),
+            (
+                GOOD.replace("tau = [0.5, 0.05]", "tau = [0.5, -0.5]"),
+                "sweep.tau[1] must be a finite number > 0 (got -0.5)",
+            ),
+            (
+                GOOD.replace("cells = [40, 30]", "cells = [100, 30]")
+                    .replace("tile = [10, 10]", "tile = [200, 10]"),
+                "grid.tile[0] must be in 1..=100 (got 200)",
+            ),
+            (
+                GOOD.replace("mode = \"full\"", "mode = \"full\"\nfoo = 1"),
+                "unknown field 'foo' in [grid] (allowed: cells, tile, mode, q2, p2)",
+            ),
+            (
+                GOOD.replace("energy = 0.125", "energy = nan"),
+                "system.energy must be a finite number (got NaN)",
+            ),
+        ];
+        for (text, want) in cases {
+            assert_eq!(usage_message(parse(&text, false)), want);
+        }
+        let msg = usage_message(parse(
+            &GOOD.replace("mode = \"full\"", "mode = \"full\"\nq2 = [-0.5, 0.6]"),
+            false,
+        ));
+        assert!(
+            msg.starts_with("grid.q2 must lie within [-0.43969262078590")
+                && msg.ends_with("at energy 0.125 (got [-0.5, 0.6])"),
+            "{msg}"
+        );
+        let msg = usage_message(parse(&GOOD.replace("dop853", "rk4"), false));
+        assert!(
+            msg.starts_with("sweep.method[1]: unknown method 'rk4' (allowed: tm-saba1"),
+            "{msg}"
+        );
+    }
+
+    #[test]
+    fn bad_specs_name_their_field_on_one_line() {
+        // (text in GOOD, replacement, what the message must contain)
+        let cases: &[(&str, &str, &str)] = &[
+            ("energy = 0.125", "energy = -1", "system.energy"),
+            (
+                "energy = 0.125",
+                "energy = 0.16666666666666667",
+                "system.energy",
+            ),
+            ("energy = 0.125", "energy = nan", "system.energy"),
+            ("energy = 0.125", "energy = -inf", "system.energy"),
+            (
+                "energy = 0.125",
+                "energy = \"x\"",
+                "system.energy must be a number",
+            ),
+            ("energy = 0.125", "", "system.energy is required"),
+            ("kind = \"henon-heiles\"", "kind = \"x\"", "system.kind"),
+            ("kind = \"henon-heiles\"", "kind = \"a\\nb\"", "system.kind"),
+            (
+                "kind = \"henon-heiles\"",
+                "kind = 3",
+                "system.kind must be a string",
+            ),
+            (
+                "[system]",
+                "[systems]",
+                "unknown field 'systems' at the top level",
+            ),
+            ("cells = [40, 30]", "cells = [40]", "grid.cells"),
+            (
+                "cells = [40, 30]",
+                "cells = 40",
+                "grid.cells must be a list",
+            ),
+            ("cells = [40, 30]", "cells = [40, -3]", "grid.cells[1]"),
+            (
+                "cells = [40, 30]",
+                "cells = [40, 30.5]",
+                "grid.cells[1] must be an integer",
+            ),
+            (
+                "cells = [40, 30]",
+                "cells = [4001, 30]",
+                "grid.cells[0] must be in 1..=4000",
+            ),
+            ("cells = [40, 30]", "cells = [4000, 4001]", "grid.cells[1]"),
+            (
+                "cells = [40, 30]",
+                "cells = [40, 99999999999999999999]",
+                "cells",
+            ),
+            (
+                "tile = [10, 10]",
+                "tile = [10, 31]",
+                "grid.tile[1] must be in 1..=30",
+            ),
+            ("tile = [10, 10]", "tile = [0, 10]", "grid.tile[0]"),
+            ("mode = \"full\"", "mode = \"half\"", "grid.mode"),
+            (
+                "mode = \"full\"",
+                "mode = \"full\"\nq2 = [0.5, 0.1]",
+                "grid.q2 must have lo < hi",
+            ),
+            ("mode = \"full\"", "mode = \"full\"\nq2 = [0.5]", "grid.q2"),
+            (
+                "mode = \"full\"",
+                "mode = \"full\"\nq2 = [0.1, inf]",
+                "grid.q2[1]",
+            ),
+            (
+                "mode = \"full\"",
+                "mode = \"full\"\np2 = [-0.6, 0.1]",
+                "grid.p2 must lie within",
+            ),
+            (
+                "mode = \"full\"",
+                "mode = \"full\"\n[grid.extra]",
+                "unknown field 'extra' in [grid]",
+            ),
+            (
+                "[grid]\ncells = [40, 30]\ntile = [10, 10]\nmode = \"full\"\n",
+                "",
+                "[grid]",
+            ),
+            (
+                "method = [\"tm-sbab2c\", \"dop853\"]",
+                "method = []",
+                "sweep.method",
+            ),
+            (
+                "method = [\"tm-sbab2c\", \"dop853\"]",
+                "method = [\"tm-sbab2c\", \"rk45\"]",
+                "sweep.method[1]",
+            ),
+            (
+                "method = [\"tm-sbab2c\", \"dop853\"]",
+                "method = \"dop853\"",
+                "sweep.method must be a list",
+            ),
+            (
+                "method = [\"tm-sbab2c\", \"dop853\"]",
+                "",
+                "sweep.method is required",
+            ),
+            ("tau = [0.5, 0.05]", "tau = [0.5, 0]", "sweep.tau[1]"),
+            ("tau = [0.5, 0.05]", "tau = [inf]", "sweep.tau[0]"),
+            (
+                "tau = [0.5, 0.05]",
+                "tau = [0.5, true]",
+                "sweep.tau[1] must be a number",
+            ),
+            ("t_final = [1e3]", "t_final = [0.1]", "sweep.t_final[0]"),
+            (
+                "t_final = [1e3]",
+                "t_final = [1e3, 1e30]",
+                "sweep.t_final[1] / sweep.tau[1]",
+            ),
+            ("t_final = [1e3]", "t_final = []", "sweep.t_final"),
+            (
+                "delta = [1e-5, 1e-8]",
+                "delta = [1e-5, -1]",
+                "sweep.delta[1]",
+            ),
+            (
+                "delta = [1e-5, 1e-8]",
+                "delta = [1e-5, nan]",
+                "sweep.delta[1]",
+            ),
+            ("delta = [1e-5, 1e-8]", "", "sweep.delta"),
+            ("delta = [1e-5, 1e-8]", "delta = []", "sweep.delta"),
+            (
+                "protocol = \"free\"",
+                "protocol = \"lazy\"",
+                "integration.protocol",
+            ),
+            (
+                "deviation = \"random\"",
+                "deviation = \"sideways\"",
+                "integration.deviation",
+            ),
+            ("seed = 7", "seed = -1", "integration.seed"),
+            ("seed = 7", "seed = 1.5", "integration.seed"),
+            (
+                "chaotic = 1e-9",
+                "chaotic = 1e-2",
+                "classify.chaotic must be ≤ classify.regular",
+            ),
+            ("chaotic = 1e-9", "chaotic = 0", "classify.chaotic"),
+            ("regular = 1e-3", "regular = 2", "classify.regular"),
+            (
+                "early_stop = false",
+                "early_stop = 1",
+                "classify.early_stop",
+            ),
+            (
+                "[classify]",
+                "[classify]\nsali = 1",
+                "unknown field 'sali' in [classify]",
+            ),
+            (
+                "name = \"t\"",
+                "name = \"t\"\nversion = 2",
+                "unknown field 'version' at the top level",
+            ),
+            ("name = \"t\"", "name = \"\"", "name"),
+            ("name = \"t\"", "name = \"a/b\"", "name"),
+            // Syntax errors name the line.
+            ("energy = 0.125", "energy = 0.125\nenergy = 0.1", "energy"),
+            ("energy = 0.125", "energy = ", "energy"),
+        ];
+        for (from, to, field) in cases {
+            assert!(GOOD.contains(from), "{from}");
+            let msg = usage_message(parse(&GOOD.replacen(from, to, 1), false));
+            assert!(msg.contains(field), "{to}: '{msg}' does not name {field}");
+            assert!(!msg.contains('\n'), "{to}: multi-line message '{msg}'");
+        }
+    }
+
+    #[test]
+    fn bad_json_specs_name_their_field_on_one_line() {
+        let cases: &[(&str, &str, &str)] = &[
+            (
+                "\"cells\": [40, 30]",
+                "\"cells\": [40, \"x\"]",
+                "grid.cells[1] must be an integer",
+            ),
+            (
+                "\"mode\": \"full\"",
+                "\"mode\": \"full\", \"foo\": 2",
+                "unknown field 'foo' in [grid]",
+            ),
+            ("\"name\": \"t\"", "\"name\": 3", "name must be a string"),
+            (
+                "\"name\": \"t\"",
+                "\"name\": \"t\", \"bar\": 1",
+                "unknown field 'bar' at the top level",
+            ),
+            (
+                "\"energy\": 0.125",
+                "\"energy\": \"high\"",
+                "system.energy must be a number",
+            ),
+            (
+                "\"energy\": 0.125",
+                "\"energy\": null",
+                "system.energy is required",
+            ),
+            ("\"seed\": 7", "\"seed\": -7", "integration.seed"),
+            (
+                "\"early_stop\": false",
+                "\"early_stop\": \"no\"",
+                "classify.early_stop",
+            ),
+            (
+                "\"tau\": [0.5, 0.05]",
+                "\"tau\": [0.5, 1e999]",
+                "spec is not valid JSON",
+            ),
+            (
+                "\"t_final\": [1000],",
+                "\"t_final\": [1000]",
+                "spec is not valid JSON",
+            ),
+            (
+                "\"integration\": {",
+                "\"integration\": [], \"x\": {",
+                "unknown field 'x'",
+            ),
+            (
+                "\"integration\": {",
+                "\"integration\": 1, \"x\": {",
+                "unknown field 'x'",
+            ),
+        ];
+        for (from, to, field) in cases {
+            assert!(GOOD_JSON.contains(from), "{from}");
+            let msg = usage_message(parse(&GOOD_JSON.replacen(from, to, 1), true));
+            assert!(msg.contains(field), "{to}: '{msg}' does not name {field}");
+            assert!(!msg.contains('\n'), "{to}: multi-line message '{msg}'");
+        }
+        let msg = usage_message(parse(
+            &GOOD_JSON.replacen("\"integration\": {", "\"integration\": 1, \"y\": {", 1),
+            true,
+        ));
+        assert!(msg.contains("'y'"), "{msg}");
+        let msg = usage_message(parse("[1, 2]", true));
+        assert!(msg.contains("the spec must be a table"), "{msg}");
+        let msg = usage_message(parse(
+            &GOOD_JSON.replacen("\"classify\": {", "\"classify\": [1], \"z\": {", 1),
+            true,
+        ));
+        assert!(msg.contains("'z'"), "{msg}");
+    }
+}

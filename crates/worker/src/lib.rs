@@ -1,0 +1,382 @@
+//! The worker: registers with a coordinator, keeps a few tile leases (enough to keep its cores
+//! busy), integrates each lease's cells with the grid's tile executor on a rayon pool — the
+//! same code `salient run` uses — and reports outcomes chunk by chunk in its polls. Reports stay
+//! in an outbox until acknowledged, so they survive a coordinator restart; on drain it finishes
+//! the lease in progress, releases the ones not started, and deregisters.
+
+use salient_grid::executor::LANES;
+use salient_grid::spec::{self, JobSpec};
+use salient_grid::{integrate_cells, CellRun, Grid};
+use salient_proto::v1;
+use salient_proto::v1::worker_service_client::WorkerServiceClient;
+use salient_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION};
+use std::collections::{HashMap, HashSet};
+use std::future::Future;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::mpsc;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
+use tonic::{Code, Request, Status};
+
+/// How the worker runs.
+pub struct Options {
+    pub coordinator: String,
+    pub threads: usize,
+    pub name: String,
+    pub token: Option<String>,
+    /// PEM of the certificate authority that signed the coordinator's certificate.
+    pub tls_ca: Option<Vec<u8>>,
+    /// Leases held at once: one in progress and the rest ready, so the pool never waits on
+    /// the network.
+    pub max_leases: usize,
+}
+
+/// CPU time of this process (user + system) in seconds, from /proc on Linux; NaN elsewhere.
+pub fn process_cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return f64::NAN;
+    };
+    // Fields after the command name (which may contain spaces) start after the last ')'.
+    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else {
+        return f64::NAN;
+    };
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15 of the whole line, 12 and 13 after ')'.
+    let ticks = |i: usize| fields.get(i).and_then(|f| f.parse::<f64>().ok());
+    match (ticks(11), ticks(12)) {
+        (Some(u), Some(s)) => (u + s) / 100.0,
+        _ => f64::NAN,
+    }
+}
+
+/// An endpoint for `url` with TLS when it is https.
+pub fn endpoint(url: &str, tls_ca: Option<&[u8]>) -> Result<Endpoint, String> {
+    let mut ep = Endpoint::from_shared(url.to_string())
+        .map_err(|e| format!("--coordinator {url:?} is not a valid URL: {e}"))?
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true);
+    if url.starts_with("https://") {
+        let mut tls = ClientTlsConfig::new().with_webpki_roots();
+        if let Some(ca) = tls_ca {
+            tls = tls.ca_certificate(Certificate::from_pem(ca));
+        }
+        ep = ep
+            .tls_config(tls)
+            .map_err(|e| format!("TLS configuration: {e}"))?;
+    }
+    Ok(ep)
+}
+
+/// Adds `authorization: Bearer <token>` to every request when a token is set.
+#[derive(Clone)]
+pub struct Token(pub Option<String>);
+
+impl tonic::service::Interceptor for Token {
+    fn call(&mut self, mut req: Request<()>) -> Result<Request<()>, Status> {
+        if let Some(t) = &self.0 {
+            let v = format!("Bearer {t}").parse().map_err(|_| {
+                Status::invalid_argument("the token holds characters a header cannot")
+            })?;
+            req.metadata_mut().insert("authorization", v);
+        }
+        Ok(req)
+    }
+}
+
+type Client = WorkerServiceClient<InterceptedService<Channel, Token>>;
+
+/// A lease handed to the compute thread.
+struct Work {
+    lease: v1::TileRef,
+    spec: Arc<JobSpec>,
+    cells: Vec<u32>,
+}
+
+/// What the compute thread hands back.
+enum Done {
+    Report(v1::TileReport),
+    /// Not started because the worker is draining.
+    Released(v1::TileRef),
+}
+
+/// Cells to skip and leases revoked, written by the network side, read between chunks.
+#[derive(Default)]
+struct Signals {
+    skips: HashMap<(u64, u32, u32), HashSet<u32>>,
+    revoked: HashSet<(u64, u32, u32)>,
+}
+
+fn compute_thread(
+    pool: rayon::ThreadPool,
+    work: std::sync::mpsc::Receiver<Work>,
+    done: mpsc::UnboundedSender<Done>,
+    signals: Arc<Mutex<Signals>>,
+    draining: Arc<AtomicBool>,
+) {
+    let chunk = (pool.current_num_threads() * LANES * 2).max(8);
+    let mut runs: HashMap<(u64, u32), (Grid, CellRun)> = HashMap::new();
+    while let Ok(w) = work.recv() {
+        let key = w.lease.key();
+        if draining.load(Ordering::Relaxed) {
+            let _ = done.send(Done::Released(w.lease));
+            continue;
+        }
+        let (grid, cell_run) = runs
+            .entry((key.0, key.1))
+            .or_insert_with(|| (w.spec.grid(), w.spec.cell_run(key.1 as usize)));
+        let mode = w.spec.grid.mode;
+        let mut rest = w.cells.as_slice();
+        loop {
+            let take = {
+                let s = signals.lock().expect("signals");
+                if s.revoked.contains(&key) {
+                    break;
+                }
+                let skip = s.skips.get(&key);
+                let (now, later) = rest.split_at(chunk.min(rest.len()));
+                rest = later;
+                now.iter()
+                    .copied()
+                    .filter(|c| !skip.is_some_and(|s| s.contains(c)))
+                    .collect::<Vec<u32>>()
+            };
+            let cpu0 = process_cpu_seconds();
+            let outcomes = pool.install(|| integrate_cells(grid, cell_run, mode, &take));
+            let cpu_ns = ((process_cpu_seconds() - cpu0).max(0.0) * 1e9) as u64;
+            let finished = rest.is_empty();
+            let report = v1::TileReport {
+                lease: Some(w.lease),
+                outcomes: outcomes.iter().map(v1::Outcome::from).collect(),
+                finished,
+                cpu_ns,
+            };
+            if (!report.outcomes.is_empty() || finished) && done.send(Done::Report(report)).is_err()
+            {
+                return;
+            }
+            if finished {
+                break;
+            }
+        }
+        let mut s = signals.lock().expect("signals");
+        s.skips.remove(&key);
+        s.revoked.remove(&key);
+    }
+}
+
+async fn connect(opts: &Options) -> Result<Client, String> {
+    let channel = endpoint(&opts.coordinator, opts.tls_ca.as_deref())?.connect_lazy();
+    Ok(
+        WorkerServiceClient::with_interceptor(channel, Token(opts.token.clone()))
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(MAX_MESSAGE_BYTES),
+    )
+}
+
+/// Registers, retrying with backoff while the coordinator is away. Refusals (wrong protocol
+/// version, bad token) end the worker.
+async fn register(client: &mut Client, opts: &Options) -> Result<v1::RegisterReply, String> {
+    let mut backoff = Duration::from_millis(100);
+    loop {
+        let req = v1::RegisterRequest {
+            protocol_version: PROTOCOL_VERSION,
+            name: opts.name.clone(),
+            threads: opts.threads as u32,
+        };
+        match client.register(req).await {
+            Ok(r) => {
+                let r = r.into_inner();
+                tracing::info!(worker = %r.worker_id, coordinator = %opts.coordinator, "registered");
+                return Ok(r);
+            }
+            Err(e)
+                if matches!(
+                    e.code(),
+                    Code::Unavailable | Code::Unknown | Code::Cancelled | Code::DeadlineExceeded
+                ) =>
+            {
+                tracing::warn!(coordinator = %opts.coordinator, error = %e.message(), retry_in_ms = backoff.as_millis() as u64, "coordinator unreachable");
+                tokio::time::sleep(backoff).await;
+                backoff = (backoff * 2).min(Duration::from_secs(5));
+            }
+            Err(e) => {
+                return Err(format!(
+                    "the coordinator refused this worker: {}",
+                    e.message()
+                ))
+            }
+        }
+    }
+}
+
+/// Runs until `drain` resolves and the held leases are finished or released.
+pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), String> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(opts.threads)
+        .thread_name(|i| format!("salient-worker-{i}"))
+        .build()
+        .map_err(|e| format!("starting the thread pool: {e}"))?;
+    let signals = Arc::new(Mutex::new(Signals::default()));
+    let draining = Arc::new(AtomicBool::new(false));
+    let (work_tx, work_rx) = std::sync::mpsc::channel::<Work>();
+    let (done_tx, mut done_rx) = mpsc::unbounded_channel::<Done>();
+    let compute = {
+        let (signals, draining) = (signals.clone(), draining.clone());
+        std::thread::Builder::new()
+            .name("salient-compute".into())
+            .spawn(move || compute_thread(pool, work_rx, done_tx, signals, draining))
+            .map_err(|e| format!("starting the compute thread: {e}"))?
+    };
+
+    let mut client = connect(&opts).await?;
+    let mut reg = register(&mut client, &opts).await?;
+    let mut specs: HashMap<u64, Arc<JobSpec>> = HashMap::new();
+    let mut held: Vec<v1::TileRef> = Vec::new();
+    let mut outbox: Vec<v1::TileReport> = Vec::new();
+    let mut released: Vec<v1::TileRef> = Vec::new();
+    let mut backoff = Duration::from_millis(100);
+    tokio::pin!(drain);
+    let mut drain_seen = false;
+    loop {
+        let idle = Duration::from_millis(reg.poll_ms.clamp(10, 5000) as u64);
+        tokio::select! {
+            _ = &mut drain, if !drain_seen => {
+                drain_seen = true;
+                draining.store(true, Ordering::Relaxed);
+                tracing::info!(held = held.len(), "draining: finishing the lease in progress, releasing the rest");
+            }
+            d = done_rx.recv() => {
+                let Some(d) = d else { return Err("the compute thread stopped".into()) };
+                let mut next = Some(d);
+                while let Some(d) = next.take().or_else(|| done_rx.try_recv().ok()) {
+                    match d {
+                        Done::Report(r) => {
+                            if r.finished {
+                                let key = r.lease.as_ref().map(|l| l.key());
+                                held.retain(|h| Some(h.key()) != key);
+                            }
+                            outbox.push(r);
+                        }
+                        Done::Released(l) => {
+                            held.retain(|h| h.key() != l.key());
+                            released.push(l);
+                        }
+                    }
+                }
+            }
+            _ = tokio::time::sleep(idle) => {}
+        }
+        let draining_now = draining.load(Ordering::Relaxed);
+        if draining_now && held.is_empty() && outbox.is_empty() {
+            break;
+        }
+        let req = v1::PollRequest {
+            worker_id: reg.worker_id.clone(),
+            free_slots: if draining_now {
+                0
+            } else {
+                opts.max_leases.saturating_sub(held.len()) as u32
+            },
+            held: held.clone(),
+            reports: outbox.clone(),
+            draining: draining_now,
+        };
+        match client.poll(req).await {
+            Ok(reply) => {
+                backoff = Duration::from_millis(100);
+                let reply = reply.into_inner();
+                let answered: HashSet<(u64, u32, u32, u32)> = reply
+                    .acknowledged
+                    .iter()
+                    .chain(&reply.stale)
+                    .map(|t| (t.job, t.run, t.tile, t.attempt))
+                    .collect();
+                // Everything sent was answered (the reply covers the whole request).
+                let sent = outbox.len();
+                outbox.retain(|r| {
+                    let l = r.lease.as_ref().expect("own reports carry their lease");
+                    !answered.contains(&(l.job, l.run, l.tile, l.attempt))
+                });
+                if outbox.len() == sent && sent > 0 {
+                    tracing::warn!(unanswered = sent, "reports not acknowledged; resending");
+                }
+                {
+                    let mut s = signals.lock().expect("signals");
+                    for skip in reply.skips {
+                        if let Some(l) = skip.lease {
+                            s.skips.entry(l.key()).or_default().extend(skip.cells);
+                        }
+                    }
+                    for r in &reply.revoked {
+                        s.revoked.insert(r.key());
+                    }
+                }
+                for r in &reply.revoked {
+                    tracing::info!(lease = %r, "lease revoked");
+                    held.retain(|h| h.key() != r.key());
+                    outbox.retain(|o| o.lease.as_ref().map(|l| l.key()) != Some(r.key()));
+                }
+                for lease in reply.leases {
+                    let Some(tile) = lease.lease else { continue };
+                    let spec = match specs.get(&tile.job) {
+                        Some(s) => s.clone(),
+                        None => match spec::parse(&lease.spec_json, true) {
+                            Ok(s) => {
+                                let s = Arc::new(s);
+                                specs.insert(tile.job, s.clone());
+                                s
+                            }
+                            Err(e) => {
+                                tracing::error!(job = tile.job, error = %e, "cannot read the job's spec; leaving the lease to lapse");
+                                continue;
+                            }
+                        },
+                    };
+                    tracing::debug!(lease = %tile, cells = lease.cells.len(), "leased");
+                    held.push(tile);
+                    if work_tx
+                        .send(Work {
+                            lease: tile,
+                            spec,
+                            cells: lease.cells,
+                        })
+                        .is_err()
+                    {
+                        return Err("the compute thread stopped".into());
+                    }
+                }
+            }
+            Err(e) if e.code() == Code::NotFound => {
+                // The coordinator restarted and forgot us: register again, keep the outbox
+                // and the leases; the next poll resends and re-adopts them.
+                tracing::warn!(error = %e.message(), "coordinator does not know this worker");
+                reg = register(&mut client, &opts).await?;
+            }
+            Err(e)
+                if matches!(
+                    e.code(),
+                    Code::Unauthenticated | Code::FailedPrecondition | Code::InvalidArgument
+                ) =>
+            {
+                return Err(format!("the coordinator refused a poll: {}", e.message()));
+            }
+            Err(e) => {
+                tracing::warn!(error = %e.message(), retry_in_ms = backoff.as_millis() as u64, pending_reports = outbox.len(), "poll failed");
+                tokio::time::sleep(backoff).await;
+                backoff = (backoff * 2).min(Duration::from_secs(5));
+            }
+        }
+    }
+    drop(work_tx);
+    let _ = client
+        .deregister(v1::DeregisterRequest {
+            worker_id: reg.worker_id.clone(),
+            released,
+        })
+        .await;
+    let _ = tokio::task::spawn_blocking(move || compute.join()).await;
+    tracing::info!("worker stopped");
+    Ok(())
+}
