@@ -1,0 +1,432 @@
+//! The scheduler driven without a network: simulated workers integrate real orbits with the
+//! grid's tile executor and report in awkward orders; the labels must equal the embedded
+//! run's, and every wire rule (versions, stale attempts, repeats, malformed reports, restart)
+//! must hold.
+
+use salient_coordinator::scheduler::{Config, Scheduler};
+use salient_grid::spec::{self, JobSpec};
+use salient_grid::{integrate_cells, run_embedded, Label, Ledger};
+use salient_proto::v1;
+use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
+use salient_store::Store;
+use std::collections::HashSet;
+use std::time::Duration;
+use tonic::Code;
+
+fn spec_json(mode: &str, methods: &str) -> String {
+    format!(
+        r#"{{"name": "t", "system": {{"kind": "henon-heiles", "energy": 0.125}},
+            "grid": {{"cells": [14, 12], "tile": [4, 5], "mode": "{mode}"}},
+            "sweep": {{"method": [{methods}], "tau": [0.5], "t_final": [200.0], "delta": [1e-6]}}}}"#
+    )
+}
+
+fn config() -> Config {
+    Config {
+        lease: Duration::from_secs(60),
+        poll: Duration::from_millis(10),
+    }
+}
+
+fn register(s: &mut Scheduler) -> String {
+    s.register(&v1::RegisterRequest {
+        protocol_version: PROTOCOL_VERSION,
+        name: "test".into(),
+        threads: 1,
+    })
+    .unwrap()
+    .worker_id
+}
+
+/// Labels of every cell of every run, rebuilt from the results stream as `salient results`
+/// does.
+fn labels(s: &Scheduler, job: u64) -> Vec<Vec<Option<Label>>> {
+    use v1::results_chunk::Part;
+    let mut spec: Option<JobSpec> = None;
+    let mut ledgers: Vec<Ledger> = Vec::new();
+    for c in s.results(job, 7).unwrap() {
+        match c.part.unwrap() {
+            Part::Header(h) => spec = Some(spec::parse(&h.spec_json, true).unwrap()),
+            Part::Run(_) => {
+                let sp = spec.as_ref().unwrap();
+                ledgers.push(Ledger::new(&sp.grid(), sp.grid.mode));
+            }
+            Part::Outcomes(b) => {
+                let sp = spec.as_ref().unwrap();
+                let k = sp.cell_run(b.run as usize).checkpoint_steps().len();
+                for o in &b.outcomes {
+                    ledgers[b.run as usize].offer(outcome_from_wire(o, &sp.grid(), k).unwrap());
+                }
+            }
+        }
+    }
+    let grid = spec.unwrap().grid();
+    ledgers
+        .iter()
+        .map(|l| {
+            assert!(l.done());
+            (0..grid.cells() as u32)
+                .map(|c| l.label(c).copied())
+                .collect()
+        })
+        .collect()
+}
+
+fn embedded(json: &str) -> Vec<Vec<Option<Label>>> {
+    let spec = spec::parse(json, true).unwrap();
+    let grid = spec.grid();
+    (0..spec.runs.len())
+        .map(|i| {
+            let l = run_embedded(&grid, &spec.cell_run(i), spec.grid.mode, 8, |_| {});
+            (0..grid.cells() as u32)
+                .map(|c| l.label(c).copied())
+                .collect()
+        })
+        .collect()
+}
+
+/// Integrates a lease's cells, minus those the coordinator said to skip.
+fn work(lease: &v1::Lease, skip: &HashSet<u32>) -> v1::TileReport {
+    let spec = spec::parse(&lease.spec_json, true).unwrap();
+    let tile = lease.lease.unwrap();
+    let cells: Vec<u32> = lease
+        .cells
+        .iter()
+        .copied()
+        .filter(|c| !skip.contains(c))
+        .collect();
+    let outcomes = integrate_cells(
+        &spec.grid(),
+        &spec.cell_run(tile.run as usize),
+        spec.grid.mode,
+        &cells,
+    );
+    v1::TileReport {
+        lease: Some(tile),
+        outcomes: outcomes.iter().map(v1::Outcome::from).collect(),
+        finished: true,
+        cpu_ns: 1,
+    }
+}
+
+/// Simulated workers: each poll returns a lease, which is worked on and reported in a later
+/// poll, so leases overlap and reports arrive out of canonical order.
+fn drive(s: &mut Scheduler, job: u64, workers: usize, mut stop_after: Option<usize>) -> usize {
+    let ids: Vec<String> = (0..workers).map(|_| register(s)).collect();
+    let mut pending: Vec<Option<v1::Lease>> = vec![None; workers];
+    let mut skips: Vec<HashSet<u32>> = vec![HashSet::new(); workers];
+    let mut reports = 0;
+    for round in 0.. {
+        assert!(round < 100_000, "no progress");
+        if s.is_finished(job).unwrap() {
+            break;
+        }
+        if stop_after == Some(reports) {
+            break;
+        }
+        // Workers take turns in a shuffled order.
+        let w = (round * 7 + round / 3) % workers;
+        let report = pending[w].take().map(|l| work(&l, &skips[w]));
+        reports += report.is_some() as usize;
+        let held: Vec<v1::TileRef> = Vec::new();
+        let reply = s
+            .poll(&v1::PollRequest {
+                worker_id: ids[w].clone(),
+                free_slots: 1,
+                held,
+                reports: report.into_iter().collect(),
+                draining: false,
+            })
+            .unwrap();
+        for sk in reply.skips {
+            skips[w].extend(sk.cells);
+        }
+        pending[w] = reply.leases.into_iter().next();
+        if stop_after.is_some_and(|n| reports >= n) {
+            stop_after = Some(reports);
+        }
+    }
+    reports
+}
+
+#[test]
+fn simulated_workers_give_the_embedded_labels_in_both_modes() {
+    for (mode, methods) in [
+        ("fast-pss", r#""tm-sbab2c", "dop853""#),
+        ("full", r#""tm-sbab2c""#),
+    ] {
+        let json = spec_json(mode, methods);
+        let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+        let (job, _) = s.submit(&json).unwrap();
+        drive(&mut s, job, 3, None);
+        let st = s.status(Some(job)).unwrap().jobs.remove(0);
+        assert_eq!(st.state, "done");
+        assert_eq!(st.runs_done, st.runs_total);
+        assert_eq!(labels(&s, job), embedded(&json), "{mode}");
+    }
+}
+
+#[test]
+fn a_restarted_scheduler_resumes_without_integrating_committed_cells_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("c.db");
+    let json = spec_json("fast-pss", r#""tm-sbab2c""#);
+    let (job, committed) = {
+        let mut s = Scheduler::new(Store::open(&db).unwrap(), config()).unwrap();
+        let (job, _) = s.submit(&json).unwrap();
+        let n = drive(&mut s, job, 2, Some(3));
+        assert_eq!(n, 3);
+        assert!(!s.is_finished(job).unwrap());
+        let stored = Store::open(&db).unwrap().outcomes(job, 0).unwrap();
+        assert!(!stored.is_empty());
+        (job, stored.iter().map(|o| o.cell).collect::<HashSet<u32>>())
+    };
+    // A new scheduler on the same file: no lease it hands out holds a committed cell.
+    let mut s = Scheduler::new(Store::open(&db).unwrap(), config()).unwrap();
+    let w = register(&mut s);
+    let mut leased = Vec::new();
+    while !s.is_finished(job).unwrap() {
+        let reply = s
+            .poll(&v1::PollRequest {
+                worker_id: w.clone(),
+                free_slots: 1,
+                ..Default::default()
+            })
+            .unwrap();
+        for l in reply.leases {
+            leased.extend(l.cells.iter().copied());
+            let report = work(&l, &HashSet::new());
+            s.report(&v1::ReportRequest {
+                worker_id: w.clone(),
+                reports: vec![report],
+            })
+            .unwrap();
+        }
+    }
+    assert!(leased.iter().all(|c| !committed.contains(c)));
+    assert_eq!(labels(&s, job), embedded(&json));
+}
+
+/// The job's status without the clock-dependent fields.
+fn snapshot(s: &Scheduler, job: u64) -> String {
+    let mut st = s.status(Some(job)).unwrap();
+    for j in &mut st.jobs {
+        for r in &mut j.runs {
+            r.wall_s = 0.0;
+            r.orbits_per_s = 0.0;
+            r.eta_s = None;
+        }
+    }
+    format!("{st:?}")
+}
+
+fn lease_one(s: &mut Scheduler, w: &str) -> v1::Lease {
+    s.poll(&v1::PollRequest {
+        worker_id: w.into(),
+        free_slots: 1,
+        ..Default::default()
+    })
+    .unwrap()
+    .leases
+    .remove(0)
+}
+
+#[test]
+fn another_protocol_version_is_refused() {
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    let e = s
+        .register(&v1::RegisterRequest {
+            protocol_version: PROTOCOL_VERSION + 1,
+            name: "old".into(),
+            threads: 4,
+        })
+        .unwrap_err();
+    assert_eq!(e.code(), Code::FailedPrecondition);
+    assert!(e.message().contains("protocol version"), "{}", e.message());
+    let e = s
+        .poll(&v1::PollRequest {
+            worker_id: "w1".into(),
+            ..Default::default()
+        })
+        .unwrap_err();
+    assert_eq!(e.code(), Code::NotFound);
+}
+
+#[test]
+fn a_lapsed_lease_goes_to_another_worker_and_the_old_report_is_stale() {
+    let mut s = Scheduler::new(
+        Store::open_in_memory().unwrap(),
+        Config {
+            lease: Duration::from_millis(1),
+            poll: Duration::from_millis(1),
+        },
+    )
+    .unwrap();
+    let (job, _) = s.submit(&spec_json("full", r#""tm-sbab2c""#)).unwrap();
+    let a = register(&mut s);
+    let first = lease_one(&mut s, &a);
+    std::thread::sleep(Duration::from_millis(5));
+    s.tick();
+    // (Worker a is forgotten too: silent for three lease periods. Its report still counts as
+    // stale below, since reports are judged by attempt.)
+    let b = register(&mut s);
+    let second = lease_one(&mut s, &b);
+    let (r1, r2) = (first.lease.unwrap(), second.lease.unwrap());
+    assert_eq!(r1.key(), r2.key(), "the lapsed tile is leased again first");
+    assert_eq!(r2.attempt, r1.attempt + 1);
+    let before = s.status(Some(job)).unwrap();
+    let a = register(&mut s);
+    let reply = s
+        .report(&v1::ReportRequest {
+            worker_id: a.clone(),
+            reports: vec![work(&first, &HashSet::new())],
+        })
+        .unwrap();
+    assert_eq!(reply.stale, vec![r1]);
+    assert!(reply.acknowledged.is_empty());
+    let after = s.status(Some(job)).unwrap();
+    assert_eq!(after.jobs[0].stale_reports, 1);
+    assert_eq!(
+        after.jobs[0].runs[0].resolved,
+        before.jobs[0].runs[0].resolved
+    );
+    // The current attempt's report counts, and a repeat of it changes nothing.
+    let report = work(&second, &HashSet::new());
+    for _ in 0..2 {
+        let reply = s
+            .report(&v1::ReportRequest {
+                worker_id: b.clone(),
+                reports: vec![report.clone()],
+            })
+            .unwrap();
+        assert_eq!(reply.acknowledged, vec![r2]);
+    }
+    let st = s.status(Some(job)).unwrap().jobs.remove(0);
+    assert_eq!(st.runs[0].resolved, second.cells.len() as u64);
+    assert_eq!(st.runs[0].orbits, second.cells.len() as u64);
+}
+
+#[test]
+fn malformed_reports_are_refused_and_change_nothing() {
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    let (job, _) = s.submit(&spec_json("full", r#""tm-sbab2c""#)).unwrap();
+    let w = register(&mut s);
+    let lease = lease_one(&mut s, &w);
+    let good = work(&lease, &HashSet::new());
+    let tile = lease.lease.unwrap();
+    let spec = spec::parse(&lease.spec_json, true).unwrap();
+    let other_tile_cell = spec
+        .grid()
+        .canonical()
+        .iter()
+        .copied()
+        .find(|&c| spec.grid().tile_of(c) != tile.tile as usize)
+        .unwrap();
+    let with = |f: &dyn Fn(&mut v1::TileReport)| {
+        let mut r = good.clone();
+        f(&mut r);
+        r
+    };
+    let cases: Vec<(v1::TileReport, Code, &str)> = vec![
+        (
+            with(&|r| r.lease.as_mut().unwrap().job = 99),
+            Code::InvalidArgument,
+            "job",
+        ),
+        (
+            with(&|r| r.lease.as_mut().unwrap().run = 5),
+            Code::InvalidArgument,
+            "run",
+        ),
+        (
+            with(&|r| r.lease.as_mut().unwrap().tile = 10_000),
+            Code::InvalidArgument,
+            "tile",
+        ),
+        (
+            with(&|r| r.lease.as_mut().unwrap().attempt = 9),
+            Code::InvalidArgument,
+            "attempt",
+        ),
+        (with(&|r| r.lease = None), Code::InvalidArgument, "lease"),
+        (
+            with(&|r| r.outcomes[0].cell = 1_000_000),
+            Code::InvalidArgument,
+            "outcome.cell",
+        ),
+        (
+            with(&|r| r.outcomes[0].cell = other_tile_cell),
+            Code::InvalidArgument,
+            "tile",
+        ),
+        (
+            with(&|r| r.outcomes[0].visited = vec![u32::MAX]),
+            Code::InvalidArgument,
+            "visited",
+        ),
+        (
+            with(&|r| r.outcomes[0].status = 77),
+            Code::InvalidArgument,
+            "status",
+        ),
+        (
+            with(&|r| r.outcomes[0].checkpoints.clear()),
+            Code::InvalidArgument,
+            "checkpoints",
+        ),
+    ];
+    let before = snapshot(&s, job);
+    for (report, code, field) in cases {
+        // A bad report spoils the whole request, even next to a good one.
+        let e = s
+            .report(&v1::ReportRequest {
+                worker_id: w.clone(),
+                reports: vec![good.clone(), report],
+            })
+            .unwrap_err();
+        assert_eq!(e.code(), code, "{field}: {}", e.message());
+        assert!(
+            e.message().contains(field),
+            "'{}' does not name {field}",
+            e.message()
+        );
+        assert_eq!(snapshot(&s, job), before, "{field}");
+    }
+}
+
+#[test]
+fn cancelling_revokes_leases_and_stops_leasing() {
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    let (job, _) = s.submit(&spec_json("full", r#""tm-sbab2c""#)).unwrap();
+    let w = register(&mut s);
+    let lease = lease_one(&mut s, &w);
+    assert_eq!(s.cancel(job).unwrap(), "cancelled");
+    let reply = s
+        .poll(&v1::PollRequest {
+            worker_id: w.clone(),
+            free_slots: 2,
+            held: vec![lease.lease.unwrap()],
+            ..Default::default()
+        })
+        .unwrap();
+    assert_eq!(reply.revoked, vec![lease.lease.unwrap()]);
+    assert!(reply.leases.is_empty());
+    assert!(s.is_finished(job).unwrap());
+    assert_eq!(s.cancel(job).unwrap(), "cancelled", "cancel is idempotent");
+    assert_eq!(s.cancel(12345).unwrap_err().code(), Code::NotFound);
+}
+
+#[test]
+fn bad_specs_from_the_wire_are_refused_with_the_field_named() {
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    for (json, field) in [
+        (spec_json("fast-pss", r#""tm-nope""#), "sweep.method"),
+        (spec_json("sideways", r#""tm-sbab2c""#), "grid.mode"),
+        ("{".to_string(), "JSON"),
+    ] {
+        let e = s.submit(&json).unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument);
+        assert!(e.message().contains(field), "{}", e.message());
+    }
+    assert!(s.status(None).unwrap().jobs.is_empty());
+}

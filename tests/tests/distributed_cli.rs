@@ -1,0 +1,354 @@
+//! The distributed mode end to end with real processes on loopback: a coordinator, workers,
+//! and the client commands. The acceptance test of the mode: `salient results` writes files
+//! byte-identical to `salient run`'s, also across a coordinator killed and restarted mid-job.
+
+use salient_tests::{json_stdout, salient, salient_path};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const TOKEN: &str = "s3cret-token";
+
+/// A child process killed when the test ends, whatever happens.
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn spawn(args: &[&str], log: &Path) -> Proc {
+    let log = std::fs::File::create(log).unwrap();
+    Proc(
+        Command::new(salient_path())
+            .args(args)
+            .env("SALIENT_TOKEN", TOKEN)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .expect("start salient"),
+    )
+}
+
+fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !ok() {
+        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Starts a coordinator on `listen` and returns it with its URL.
+fn coordinator(dir: &Path, listen: &str, log: &str) -> (Proc, String) {
+    let addr_file = dir.join(format!("{log}.addr"));
+    let _ = std::fs::remove_file(&addr_file);
+    let db = dir.join("coordinator.db");
+    let p = spawn(
+        &[
+            "coordinator",
+            "--listen",
+            listen,
+            "--db",
+            db.to_str().unwrap(),
+            "--address-file",
+            addr_file.to_str().unwrap(),
+            "--lease-seconds",
+            "5",
+        ],
+        &dir.join(log),
+    );
+    wait_for("the coordinator to listen", Duration::from_secs(30), || {
+        std::fs::read_to_string(&addr_file).is_ok_and(|a| a.ends_with('\n'))
+    });
+    let addr = std::fs::read_to_string(&addr_file).unwrap();
+    (p, format!("http://{}", addr.trim()))
+}
+
+fn worker(dir: &Path, url: &str, n: usize) -> Proc {
+    spawn(
+        &[
+            "worker",
+            "--coordinator",
+            url,
+            "--threads",
+            "1",
+            "--name",
+            &format!("w{n}"),
+        ],
+        &dir.join(format!("worker-{n}.log")),
+    )
+}
+
+fn client(args: &[&str], url: &str) -> std::process::Output {
+    Command::new(salient_path())
+        .args(args)
+        .args(["--coordinator", url])
+        .env("SALIENT_TOKEN", TOKEN)
+        .output()
+        .expect("run salient")
+}
+
+fn run_dirs(out: &Path) -> Vec<PathBuf> {
+    let mut dirs: Vec<_> = std::fs::read_dir(out)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.is_dir())
+        .collect();
+    dirs.sort();
+    dirs
+}
+
+/// Every per-cell file of every run is byte-identical.
+fn assert_same_outputs(a: &Path, b: &Path) {
+    let (da, db) = (run_dirs(a), run_dirs(b));
+    assert_eq!(da.len(), db.len());
+    assert!(!da.is_empty());
+    for (x, y) in da.iter().zip(&db) {
+        assert_eq!(x.file_name(), y.file_name());
+        for f in ["cells.csv", "class.npy", "sali.npy"] {
+            let (bx, by) = (
+                std::fs::read(x.join(f)).unwrap(),
+                std::fs::read(y.join(f)).unwrap(),
+            );
+            assert!(
+                bx == by,
+                "{} differs between {} and {}",
+                f,
+                x.display(),
+                y.display()
+            );
+        }
+    }
+}
+
+fn write_spec(dir: &Path, text: &str) -> String {
+    let p = dir.join("spec.toml");
+    std::fs::write(&p, text).unwrap();
+    p.to_str().unwrap().to_string()
+}
+
+#[test]
+fn distributed_results_equal_salient_run_byte_for_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let spec = write_spec(
+        d,
+        r#"
+name = "dist"
+[system]
+kind = "henon-heiles"
+energy = 0.125
+[grid]
+cells = [40, 36]
+tile = [10, 9]
+[sweep]
+method = ["tm-sbab2c", "dop853"]
+tau = [0.5]
+t_final = [1e3]
+delta = [1e-6]
+"#,
+    );
+    let (_c, url) = coordinator(d, "127.0.0.1:0", "coordinator.log");
+    let _w: Vec<Proc> = (1..=2).map(|n| worker(d, &url, n)).collect();
+
+    // Without the token the coordinator refuses clients.
+    let out = Command::new(salient_path())
+        .args(["status", "--coordinator", &url])
+        .env_remove("SALIENT_TOKEN")
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("token"));
+
+    let dist = d.join("dist");
+    let out = client(
+        &[
+            "submit",
+            &spec,
+            "--wait",
+            "--json",
+            "--out",
+            dist.to_str().unwrap(),
+        ],
+        &url,
+    );
+    let summary = json_stdout(&out);
+    assert_eq!(summary["runs"].as_array().unwrap().len(), 2);
+
+    let emb = d.join("emb");
+    let out = salient(&[
+        "run",
+        &spec,
+        "--threads",
+        "2",
+        "--json",
+        "--out",
+        emb.to_str().unwrap(),
+    ]);
+    let embedded = json_stdout(&out);
+    assert_same_outputs(&emb, &dist);
+    for (a, b) in summary["runs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(embedded["runs"].as_array().unwrap())
+    {
+        assert_eq!(a["percent"], b["percent"]);
+        assert_eq!(a["counts"], b["counts"]);
+        assert_eq!(a["orbits_integrated"], b["orbits_integrated"]);
+    }
+
+    // status knows the job; results can be fetched again; an unknown job is bad input.
+    let st = json_stdout(&client(&["status", "--json"], &url));
+    assert_eq!(st["jobs"][0]["state"], "done");
+    assert_eq!(st["workers"], 2);
+    let again = d.join("again");
+    let out = client(
+        &["results", "1", "--json", "--out", again.to_str().unwrap()],
+        &url,
+    );
+    json_stdout(&out);
+    assert_same_outputs(&emb, &again);
+    let out = client(&["results", "7"], &url);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no job 7"));
+    // watch on a finished job prints its final state.
+    let out = client(&["watch", "1"], &url);
+    assert!(out.status.success());
+    assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "job 1 done");
+    // A long job is cancelled: its leases are revoked and it has no results.
+    let long = write_spec(
+        d,
+        &std::fs::read_to_string(&spec)
+            .unwrap()
+            .replace("t_final = [1e3]", "t_final = [1e8]"),
+    );
+    let job = json_stdout(&client(&["submit", &long, "--json"], &url))["job"]
+        .as_u64()
+        .unwrap();
+    assert_eq!(job, 2);
+    let out = client(&["cancel", "2"], &url);
+    assert!(out.status.success());
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout).trim(),
+        "job 2 cancelled"
+    );
+    let out = client(&["results", "2"], &url);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("job 2 is cancelled"));
+    let out = client(&["watch", "2"], &url);
+    assert_eq!(out.status.code(), Some(1));
+    // A bad spec never reaches the coordinator.
+    let bad = write_spec(d, "[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [0, 4]\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [10.0]\n");
+    let out = client(&["submit", &bad], &url);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("grid.cells"));
+}
+
+#[test]
+fn a_coordinator_killed_mid_job_resumes_and_workers_drain_on_sigterm() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let spec = write_spec(
+        d,
+        r#"
+name = "restart"
+[system]
+kind = "henon-heiles"
+energy = 0.125
+[grid]
+cells = [40, 40]
+tile = [5, 5]
+mode = "full"
+[sweep]
+method = ["tm-sbab2c"]
+tau = [0.5]
+t_final = [2e4]
+"#,
+    );
+    let (mut c, url) = coordinator(d, "127.0.0.1:0", "coordinator-1.log");
+    let mut workers: Vec<Proc> = (1..=2).map(|n| worker(d, &url, n)).collect();
+    let out = client(&["submit", &spec, "--json"], &url);
+    let job = json_stdout(&out)["job"].as_u64().unwrap();
+    // Let some outcomes be committed, then kill the coordinator without warning.
+    let mut progress = (0, 0);
+    wait_for("some committed outcomes", Duration::from_secs(60), || {
+        let st = json_stdout(&client(&["status", &job.to_string(), "--json"], &url));
+        let run = &st["jobs"][0]["runs"][0];
+        progress = (
+            run["resolved"].as_u64().unwrap(),
+            run["compatible"].as_u64().unwrap(),
+        );
+        progress.0 > 50
+    });
+    assert!(
+        progress.0 < progress.1 / 2,
+        "the job must be far from done: {progress:?}"
+    );
+    c.0.kill().unwrap();
+    c.0.wait().unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    // Same address, same store: the workers reconnect, re-register and resend.
+    let listen = url.trim_start_matches("http://").to_string();
+    let (_c2, url2) = coordinator(d, &listen, "coordinator-2.log");
+    assert_eq!(url, url2);
+    let dist = d.join("dist");
+    let out = client(
+        &[
+            "results",
+            &job.to_string(),
+            "--wait",
+            "--json",
+            "--out",
+            dist.to_str().unwrap(),
+        ],
+        &url,
+    );
+    json_stdout(&out);
+    let log = std::fs::read_to_string(d.join("coordinator-2.log")).unwrap();
+    assert!(log.contains("resumed"), "{log}");
+
+    let emb = d.join("emb");
+    json_stdout(&salient(&[
+        "run",
+        &spec,
+        "--threads",
+        "2",
+        "--json",
+        "--out",
+        emb.to_str().unwrap(),
+    ]));
+    assert_same_outputs(&emb, &dist);
+
+    // SIGTERM: the workers drain and exit 0.
+    for w in &workers {
+        let ok = Command::new("kill")
+            .args(["-TERM", &w.0.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(ok.success());
+    }
+    for w in &mut workers {
+        let start = Instant::now();
+        let status = loop {
+            if let Some(s) = w.0.try_wait().unwrap() {
+                break s;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(30),
+                "worker did not drain"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        assert!(status.success(), "worker exit {status:?}");
+    }
+    let wlog = std::fs::read_to_string(d.join("worker-1.log")).unwrap();
+    assert!(
+        wlog.contains("draining") && wlog.contains("worker stopped"),
+        "{wlog}"
+    );
+}
