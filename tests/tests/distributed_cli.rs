@@ -43,6 +43,10 @@ fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
 
 /// Starts a coordinator on `listen` and returns it with its URL.
 fn coordinator(dir: &Path, listen: &str, log: &str) -> (Proc, String) {
+    coordinator_with(dir, listen, log, &[])
+}
+
+fn coordinator_with(dir: &Path, listen: &str, log: &str, extra: &[&str]) -> (Proc, String) {
     let addr_file = dir.join(format!("{log}.addr"));
     let _ = std::fs::remove_file(&addr_file);
     let db = dir.join("coordinator.db");
@@ -57,7 +61,11 @@ fn coordinator(dir: &Path, listen: &str, log: &str) -> (Proc, String) {
             addr_file.to_str().unwrap(),
             "--lease-seconds",
             "5",
-        ],
+        ]
+        .iter()
+        .chain(extra)
+        .copied()
+        .collect::<Vec<_>>(),
         &dir.join(log),
     );
     wait_for("the coordinator to listen", Duration::from_secs(30), || {
@@ -350,5 +358,103 @@ t_final = [2e4]
     assert!(
         wlog.contains("draining") && wlog.contains("worker stopped"),
         "{wlog}"
+    );
+}
+
+fn fixture(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("fixtures/tls")
+        .join(name)
+        .to_str()
+        .unwrap()
+        .to_string()
+}
+
+#[test]
+fn tls_with_a_private_ca_and_the_health_service() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let spec = write_spec(
+        d,
+        "name = \"tls\"\n[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [16, 16]\ntile = [8, 8]\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [500.0]\n",
+    );
+    let (cert, key, ca) = (
+        fixture("server.pem"),
+        fixture("server.key"),
+        fixture("ca.pem"),
+    );
+    let (_c, url) = coordinator_with(
+        d,
+        "127.0.0.1:0",
+        "coordinator.log",
+        &["--tls-cert", &cert, "--tls-key", &key],
+    );
+    let url = url.replace("http://", "https://");
+    let _w = spawn(
+        &[
+            "worker",
+            "--coordinator",
+            &url,
+            "--threads",
+            "1",
+            "--tls-ca",
+            &ca,
+        ],
+        &d.join("worker.log"),
+    );
+    let out = d.join("out");
+    let summary = json_stdout(&client(
+        &[
+            "submit",
+            &spec,
+            "--wait",
+            "--json",
+            "--tls-ca",
+            &ca,
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &url,
+    ));
+    assert!(summary["runs"][0]["orbits_integrated"].as_u64().unwrap() > 0);
+    let emb = d.join("emb");
+    json_stdout(&salient(&[
+        "run",
+        &spec,
+        "--json",
+        "--out",
+        emb.to_str().unwrap(),
+    ]));
+    assert_same_outputs(&emb, &out);
+    // Without the CA the client refuses the coordinator's certificate.
+    let refused = client(&["status"], &url);
+    assert_eq!(refused.status.code(), Some(1));
+
+    // grpc.health.v1 answers SERVING over TLS, without the token (for probes).
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let status = rt.block_on(async {
+        let tls = tonic::transport::ClientTlsConfig::new().ca_certificate(
+            tonic::transport::Certificate::from_pem(std::fs::read(&ca).unwrap()),
+        );
+        let channel = tonic::transport::Endpoint::from_shared(url.clone())
+            .unwrap()
+            .tls_config(tls)
+            .unwrap()
+            .connect()
+            .await
+            .unwrap();
+        let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
+        health
+            .check(tonic_health::pb::HealthCheckRequest {
+                service: "salient.v1.WorkerService".into(),
+            })
+            .await
+            .unwrap()
+            .into_inner()
+            .status
+    });
+    assert_eq!(
+        status,
+        tonic_health::pb::health_check_response::ServingStatus::Serving as i32
     );
 }

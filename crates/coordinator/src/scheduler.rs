@@ -30,6 +30,9 @@ impl Default for Config {
     }
 }
 
+/// Fast PSS leases at most this many cells per worker thread.
+const LEASE_CELLS_PER_THREAD: usize = 2 * salient_grid::executor::LANES;
+
 /// A (job, run, tile) lease's work, without the attempt.
 type TileKey = (u64, u32, u32);
 
@@ -64,8 +67,8 @@ struct Run {
     started: Option<Instant>,
     wall_s: f64,
     done: bool,
-    stale_orbits: u64,
-    stale_steps: u64,
+    extra_dropped_orbits: u64,
+    extra_dropped_steps: u64,
 }
 
 struct Job {
@@ -124,8 +127,8 @@ impl Run {
             started: None,
             wall_s: 0.0,
             done: false,
-            stale_orbits: 0,
-            stale_steps: 0,
+            extra_dropped_orbits: 0,
+            extra_dropped_steps: 0,
         }
     }
 
@@ -210,8 +213,8 @@ impl Scheduler {
                 .cpu_ns;
             run.done = run.ledger.done();
             run.wall_s = count(index, "wall_ms") as f64 / 1e3;
-            run.stale_orbits = count(index, "stale_orbits");
-            run.stale_steps = count(index, "stale_steps");
+            run.extra_dropped_orbits = count(index, "extra_dropped_orbits");
+            run.extra_dropped_steps = count(index, "extra_dropped_steps");
             runs.push(run);
         }
         for (run, tile, attempt) in self.store.attempts(id).map_err(store_err)? {
@@ -376,21 +379,21 @@ impl Scheduler {
             if lease.attempt < tile.attempt || job.state.is_terminal() {
                 if lease.attempt < tile.attempt {
                     job.stale_reports += 1;
-                    run.stale_orbits += r.outcomes.len() as u64;
+                    run.extra_dropped_orbits += r.outcomes.len() as u64;
                     let steps: u64 = r.outcomes.iter().map(|o| o.steps).sum();
-                    run.stale_steps += steps;
+                    run.extra_dropped_steps += steps;
                     self.store
                         .add_counter(job.id, "stale_reports", 1)
                         .map_err(store_err)?;
                     self.store
                         .add_counter(
                             job.id,
-                            &counter(run_index, "stale_orbits"),
+                            &counter(run_index, "extra_dropped_orbits"),
                             r.outcomes.len() as u64,
                         )
                         .map_err(store_err)?;
                     self.store
-                        .add_counter(job.id, &counter(run_index, "stale_steps"), steps)
+                        .add_counter(job.id, &counter(run_index, "extra_dropped_steps"), steps)
                         .map_err(store_err)?;
                     tracing::debug!(%lease, worker, "stale report dropped");
                     out.stale.push(lease);
@@ -432,6 +435,25 @@ impl Scheduler {
             }
             if r.finished && tile.lease.as_ref().is_some_and(|l| l.worker == worker) {
                 tile.lease = None;
+                // Counted once: a repeat of the finishing report finds the lease gone.
+                if r.abandoned_orbits > 0 {
+                    run.extra_dropped_orbits += r.abandoned_orbits;
+                    run.extra_dropped_steps += r.abandoned_steps;
+                    self.store
+                        .add_counter(
+                            job.id,
+                            &counter(run_index, "extra_dropped_orbits"),
+                            r.abandoned_orbits,
+                        )
+                        .map_err(store_err)?;
+                    self.store
+                        .add_counter(
+                            job.id,
+                            &counter(run_index, "extra_dropped_steps"),
+                            r.abandoned_steps,
+                        )
+                        .map_err(store_err)?;
+                }
                 if let Some(w) = self.workers.get_mut(worker) {
                     w.leases.remove(&key);
                 }
@@ -643,10 +665,17 @@ impl Scheduler {
         let revoked = self.renew(worker, &req.held);
         let mut leases = Vec::new();
         if !req.draining {
+            let threads = self.workers.get(worker).map_or(1, |w| w.threads as usize);
             for _ in 0..req.free_slots.min(8) {
-                let Some((key, cells)) = self.next_tile() else {
+                let Some((key, mut cells)) = self.next_tile() else {
                     break;
                 };
+                // Fast PSS: lease a tile's wanted cells a worker's batch at a time, each lease
+                // judged on the latest claims, so speculation stays about one batch per worker
+                // (a tile with wanted cells left is leased again once this lease finishes).
+                if self.jobs[&key.0].spec.grid.mode == salient_grid::Mode::FastPss {
+                    cells.truncate(threads * LEASE_CELLS_PER_THREAD);
+                }
                 leases.push(self.lease(worker, key, cells)?);
             }
         }
@@ -809,7 +838,7 @@ impl Scheduler {
                 compatible: c,
                 resolved: r,
                 orbits,
-                dropped: run.ledger.dropped + run.stale_orbits,
+                dropped: run.ledger.dropped + run.extra_dropped_orbits,
                 orbits_per_s,
                 eta_s,
                 done: run.done,
@@ -868,8 +897,8 @@ impl Scheduler {
             for (i, run) in job.runs.iter().enumerate() {
                 parts.push(Part::Run(v1::RunHeader {
                     run: i as u32,
-                    orbits_dropped: run.ledger.dropped + run.stale_orbits,
-                    steps_dropped: run.ledger.dropped_steps + run.stale_steps,
+                    orbits_dropped: run.ledger.dropped + run.extra_dropped_orbits,
+                    steps_dropped: run.ledger.dropped_steps + run.extra_dropped_steps,
                     cpu_s: run.cpu_ns as f64 / 1e9,
                     wall_s: run.elapsed(),
                     outcomes: run.ledger.committed.len() as u64,

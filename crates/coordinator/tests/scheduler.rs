@@ -106,6 +106,7 @@ fn work(lease: &v1::Lease, skip: &HashSet<u32>) -> v1::TileReport {
         outcomes: outcomes.iter().map(v1::Outcome::from).collect(),
         finished: true,
         cpu_ns: 1,
+        ..Default::default()
     }
 }
 
@@ -290,8 +291,11 @@ fn a_lapsed_lease_goes_to_another_worker_and_the_old_report_is_stale() {
         after.jobs[0].runs[0].resolved,
         before.jobs[0].runs[0].resolved
     );
-    // The current attempt's report counts, and a repeat of it changes nothing.
-    let report = work(&second, &HashSet::new());
+    // The current attempt's report counts, and a repeat of it changes nothing (the orbits it
+    // abandoned are counted as dropped once).
+    let mut report = work(&second, &HashSet::new());
+    report.abandoned_orbits = 2;
+    report.abandoned_steps = 100;
     for _ in 0..2 {
         let reply = s
             .report(&v1::ReportRequest {
@@ -303,7 +307,11 @@ fn a_lapsed_lease_goes_to_another_worker_and_the_old_report_is_stale() {
     }
     let st = s.status(Some(job)).unwrap().jobs.remove(0);
     assert_eq!(st.runs[0].resolved, second.cells.len() as u64);
-    assert_eq!(st.runs[0].orbits, second.cells.len() as u64);
+    assert_eq!(
+        st.runs[0].dropped,
+        first.cells.len() as u64 + 2,
+        "stale + abandoned"
+    );
 }
 
 #[test]

@@ -107,6 +107,28 @@ impl Claims {
         }
     }
 
+    /// Claims with no frontier orbit: cells are claimed only through [`Claims::claim`] (a
+    /// worker learning from its coordinator that a cell no longer needs an orbit).
+    pub fn external(grid: &Grid) -> Self {
+        let c = Claims::new(grid);
+        c.frontier.store(usize::MAX, Ordering::Relaxed);
+        c
+    }
+
+    /// Marks a cell as labelled by another orbit: its orbit, if running, is abandoned.
+    pub fn claim(&self, cell: u32) {
+        if let Some(c) = self.claimed.get(cell as usize) {
+            c.store(true, Ordering::Relaxed);
+        }
+    }
+
+    /// Withdraws a claim: the cell needs its orbit after all (its claimer was dropped).
+    pub fn unclaim(&self, cell: u32) {
+        if let Some(c) = self.claimed.get(cell as usize) {
+            c.store(false, Ordering::Relaxed);
+        }
+    }
+
     /// Brings the claims up to date with the ledger (call with the ledger locked).
     pub fn sync(&self, ledger: &mut Ledger) {
         for c in ledger.take_newly_labelled() {

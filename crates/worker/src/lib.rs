@@ -4,9 +4,9 @@
 //! in an outbox until acknowledged, so they survive a coordinator restart; on drain it finishes
 //! the lease in progress, releases the ones not started, and deregisters.
 
-use salient_grid::executor::LANES;
+use salient_grid::executor::{integrate_cells_with, Claims, LANES};
 use salient_grid::spec::{self, JobSpec};
-use salient_grid::{integrate_cells, CellRun, Grid};
+use salient_grid::{CellRun, Grid};
 use salient_proto::v1;
 use salient_proto::v1::worker_service_client::WorkerServiceClient;
 use salient_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION};
@@ -101,11 +101,14 @@ enum Done {
     Released(v1::TileRef),
 }
 
-/// Cells to skip and leases revoked, written by the network side, read between chunks.
+/// Cells to skip and leases revoked, written by the network side, read between chunks; and
+/// per run the claims through which a skip abandons an orbit already running.
 #[derive(Default)]
 struct Signals {
-    skips: HashMap<(u64, u32, u32), HashSet<u32>>,
-    revoked: HashSet<(u64, u32, u32)>,
+    /// By lease (job, run, tile, attempt).
+    skips: HashMap<(u64, u32, u32, u32), HashSet<u32>>,
+    revoked: HashSet<(u64, u32, u32, u32)>,
+    claims: HashMap<(u64, u32), Arc<Claims>>,
 }
 
 fn compute_thread(
@@ -116,25 +119,44 @@ fn compute_thread(
     draining: Arc<AtomicBool>,
 ) {
     let chunk = (pool.current_num_threads() * LANES * 2).max(8);
-    let mut runs: HashMap<(u64, u32), (Grid, CellRun)> = HashMap::new();
+    let mut runs: HashMap<(u64, u32), (Grid, CellRun, Arc<Claims>)> = HashMap::new();
     while let Ok(w) = work.recv() {
         let key = w.lease.key();
+        let lease_key = (key.0, key.1, key.2, w.lease.attempt);
         if draining.load(Ordering::Relaxed) {
             let _ = done.send(Done::Released(w.lease));
             continue;
         }
-        let (grid, cell_run) = runs
-            .entry((key.0, key.1))
-            .or_insert_with(|| (w.spec.grid(), w.spec.cell_run(key.1 as usize)));
+        let (grid, cell_run, claims) = runs.entry((key.0, key.1)).or_insert_with(|| {
+            let grid = w.spec.grid();
+            let claims = Arc::new(Claims::external(&grid));
+            let mut s = signals.lock().expect("signals");
+            s.claims.insert((key.0, key.1), claims.clone());
+            (grid, w.spec.cell_run(key.1 as usize), claims)
+        });
+        {
+            // The coordinator leases a cell only when it needs it: a claim left from an earlier
+            // skip of this cell must not abandon it now.
+            let s = signals.lock().expect("signals");
+            let skips = s.skips.get(&lease_key);
+            for &c in &w.cells {
+                if skips.is_some_and(|sk| sk.contains(&c)) {
+                    claims.claim(c);
+                } else {
+                    claims.unclaim(c);
+                }
+            }
+        }
+        let abandoned0 = claims.abandoned();
         let mode = w.spec.grid.mode;
         let mut rest = w.cells.as_slice();
         loop {
             let take = {
                 let s = signals.lock().expect("signals");
-                if s.revoked.contains(&key) {
+                if s.revoked.contains(&lease_key) {
                     break;
                 }
-                let skip = s.skips.get(&key);
+                let skip = s.skips.get(&lease_key);
                 let (now, later) = rest.split_at(chunk.min(rest.len()));
                 rest = later;
                 now.iter()
@@ -143,14 +165,27 @@ fn compute_thread(
                     .collect::<Vec<u32>>()
             };
             let cpu0 = process_cpu_seconds();
-            let outcomes = pool.install(|| integrate_cells(grid, cell_run, mode, &take));
+            let outcomes =
+                pool.install(|| integrate_cells_with(grid, cell_run, mode, &take, Some(claims)));
             let cpu_ns = ((process_cpu_seconds() - cpu0).max(0.0) * 1e9) as u64;
             let finished = rest.is_empty();
+            let abandoned = claims.abandoned();
             let report = v1::TileReport {
                 lease: Some(w.lease),
                 outcomes: outcomes.iter().map(v1::Outcome::from).collect(),
                 finished,
                 cpu_ns,
+                // The lease's total, sent once with the finishing report.
+                abandoned_orbits: if finished {
+                    abandoned.0 - abandoned0.0
+                } else {
+                    0
+                },
+                abandoned_steps: if finished {
+                    abandoned.1 - abandoned0.1
+                } else {
+                    0
+                },
             };
             if (!report.outcomes.is_empty() || finished) && done.send(Done::Report(report)).is_err()
             {
@@ -161,8 +196,8 @@ fn compute_thread(
             }
         }
         let mut s = signals.lock().expect("signals");
-        s.skips.remove(&key);
-        s.revoked.remove(&key);
+        s.skips.remove(&lease_key);
+        s.revoked.remove(&lease_key);
     }
 }
 
@@ -254,13 +289,12 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     match d {
                         Done::Report(r) => {
                             if r.finished {
-                                let key = r.lease.as_ref().map(|l| l.key());
-                                held.retain(|h| Some(h.key()) != key);
+                                held.retain(|h| Some(h) != r.lease.as_ref());
                             }
                             outbox.push(r);
                         }
                         Done::Released(l) => {
-                            held.retain(|h| h.key() != l.key());
+                            held.retain(|h| *h != l);
                             released.push(l);
                         }
                     }
@@ -306,17 +340,23 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     let mut s = signals.lock().expect("signals");
                     for skip in reply.skips {
                         if let Some(l) = skip.lease {
-                            s.skips.entry(l.key()).or_default().extend(skip.cells);
+                            if let Some(c) = s.claims.get(&(l.job, l.run)) {
+                                skip.cells.iter().for_each(|&cell| c.claim(cell));
+                            }
+                            s.skips
+                                .entry((l.job, l.run, l.tile, l.attempt))
+                                .or_default()
+                                .extend(skip.cells);
                         }
                     }
                     for r in &reply.revoked {
-                        s.revoked.insert(r.key());
+                        s.revoked.insert((r.job, r.run, r.tile, r.attempt));
                     }
                 }
                 for r in &reply.revoked {
                     tracing::info!(lease = %r, "lease revoked");
-                    held.retain(|h| h.key() != r.key());
-                    outbox.retain(|o| o.lease.as_ref().map(|l| l.key()) != Some(r.key()));
+                    held.retain(|h| h != r);
+                    outbox.retain(|o| o.lease.as_ref() != Some(r));
                 }
                 for lease in reply.leases {
                     let Some(tile) = lease.lease else { continue };
