@@ -274,8 +274,16 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
     let mut backoff = Duration::from_millis(100);
     tokio::pin!(drain);
     let mut drain_seen = false;
+    // A worker with free slots and nothing leased polls soon again (the frontier moves as
+    // others report), backing off to the coordinator's interval while nothing comes.
+    let mut hungry = Duration::from_millis(2);
     loop {
-        let idle = Duration::from_millis(reg.poll_ms.clamp(10, 5000) as u64);
+        let busy = Duration::from_millis(reg.poll_ms.clamp(10, 5000) as u64);
+        let idle = if held.len() < opts.max_leases && !draining.load(Ordering::Relaxed) {
+            hungry.min(busy)
+        } else {
+            busy
+        };
         tokio::select! {
             _ = &mut drain, if !drain_seen => {
                 drain_seen = true;
@@ -358,6 +366,11 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     held.retain(|h| h != r);
                     outbox.retain(|o| o.lease.as_ref() != Some(r));
                 }
+                hungry = if reply.leases.is_empty() {
+                    (hungry * 2).min(busy)
+                } else {
+                    Duration::from_millis(2)
+                };
                 for lease in reply.leases {
                     let Some(tile) = lease.lease else { continue };
                     let spec = match specs.get(&tile.job) {
