@@ -25,7 +25,7 @@ fn spawn(args: &[&str], log: &Path) -> Proc {
         Command::new(salient_path())
             .args(args)
             .env("SALIENT_TOKEN", TOKEN)
-            .env("RUST_LOG", "info")
+            .env("RUST_LOG", "info,salient_coordinator=debug")
             .stdout(Stdio::null())
             .stderr(log)
             .spawn()
@@ -43,7 +43,7 @@ fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
 
 /// Starts a coordinator on `listen` and returns it with its URL.
 fn coordinator(dir: &Path, listen: &str, log: &str) -> (Proc, String) {
-    coordinator_with(dir, listen, log, &[])
+    coordinator_with(dir, listen, log, &["--lease-seconds", "5"])
 }
 
 fn coordinator_with(dir: &Path, listen: &str, log: &str, extra: &[&str]) -> (Proc, String) {
@@ -59,8 +59,6 @@ fn coordinator_with(dir: &Path, listen: &str, log: &str, extra: &[&str]) -> (Pro
             db.to_str().unwrap(),
             "--address-file",
             addr_file.to_str().unwrap(),
-            "--lease-seconds",
-            "5",
         ]
         .iter()
         .chain(extra)
@@ -131,6 +129,12 @@ fn assert_same_outputs(a: &Path, b: &Path) {
             );
         }
     }
+}
+
+/// The number after `key` in a log line.
+fn field(line: &str, key: &str) -> u64 {
+    let at = line.find(key).unwrap_or_else(|| panic!("no {key} in {line}")) + key.len();
+    line[at..].split(|c: char| !c.is_ascii_digit()).next().unwrap().parse().unwrap()
 }
 
 fn write_spec(dir: &Path, text: &str) -> String {
@@ -319,6 +323,16 @@ t_final = [2e4]
     json_stdout(&out);
     let log = std::fs::read_to_string(d.join("coordinator-2.log")).unwrap();
     assert!(log.contains("resumed"), "{log}");
+    // Committed work is not redone: the restarted coordinator leases at most the cells that
+    // had no committed outcome (full mode: every compatible cell once).
+    let resumed = field(log.lines().find(|l| l.contains("resumed")).unwrap(), "resolved=");
+    let leased_after: u64 = log.lines().filter(|l| l.contains(" leased ")).map(|l| field(l, "cells=")).sum();
+    assert!(resumed > 0);
+    assert!(
+        leased_after + resumed <= progress.1,
+        "leased {leased_after} after resuming {resumed} of {}",
+        progress.1
+    );
 
     let emb = d.join("emb");
     json_stdout(&salient(&[
@@ -457,4 +471,73 @@ fn tls_with_a_private_ca_and_the_health_service() {
         status,
         tonic_health::pb::health_check_response::ServingStatus::Serving as i32
     );
+}
+
+#[test]
+fn a_worker_killed_mid_run_has_its_tile_leased_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let spec = write_spec(
+        d,
+        "name = \"kill\"\n[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [30, 30]\ntile = [15, 15]\nmode = \"full\"\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [1e5]\n",
+    );
+    let (_c, url) = coordinator_with(d, "127.0.0.1:0", "coordinator.log", &["--lease-seconds", "1"]);
+    // Worker 1 registers first, so the coordinator calls it w1.
+    let mut w1 = worker(d, &url, 1);
+    wait_for("worker 1 to register", Duration::from_secs(30), || {
+        std::fs::read_to_string(d.join("coordinator.log")).unwrap().contains("worker registered")
+    });
+    let _w2 = worker(d, &url, 2);
+    let job = json_stdout(&client(&["submit", &spec, "--json"], &url))["job"].as_u64().unwrap();
+    wait_for("worker 1 to hold a lease", Duration::from_secs(30), || {
+        std::fs::read_to_string(d.join("coordinator.log")).unwrap().contains("worker=\"w1\"")
+    });
+    w1.0.kill().unwrap();
+    w1.0.wait().unwrap();
+    let dist = d.join("dist");
+    json_stdout(&client(
+        &["results", &job.to_string(), "--wait", "--json", "--out", dist.to_str().unwrap()],
+        &url,
+    ));
+    let log = std::fs::read_to_string(d.join("coordinator.log")).unwrap();
+    let lapsed = log.lines().find(|l| l.contains("lease lapsed")).expect("a lease lapsed");
+    let (tile, attempt) = (field(lapsed, "tile="), field(lapsed, "attempt="));
+    let again = format!("tile={tile} attempt={}", attempt + 1);
+    assert!(
+        log.lines().any(|l| l.contains(" leased ") && l.contains(&again) && l.contains("worker=\"w2\"")),
+        "tile {tile} was not leased again to w2"
+    );
+    let emb = d.join("emb");
+    json_stdout(&salient(&["run", &spec, "--json", "--out", emb.to_str().unwrap()]));
+    assert_same_outputs(&emb, &dist);
+}
+
+#[test]
+fn oversize_messages_are_refused_and_change_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_c, url) = coordinator(dir.path(), "127.0.0.1:0", "coordinator.log");
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let (code, jobs) = rt.block_on(async {
+        use salient_proto::v1;
+        let channel = tonic::transport::Endpoint::from_shared(url.clone()).unwrap().connect().await.unwrap();
+        let token: tonic::metadata::MetadataValue<_> = format!("Bearer {TOKEN}").parse().unwrap();
+        let mut client = v1::client_service_client::ClientServiceClient::with_interceptor(
+            channel,
+            move |mut r: tonic::Request<()>| {
+                r.metadata_mut().insert("authorization", token.clone());
+                Ok(r)
+            },
+        )
+        .max_encoding_message_size(64 << 20);
+        let huge = "x".repeat(salient_proto::MAX_MESSAGE_BYTES + 1);
+        let code = client
+            .submit(v1::SubmitRequest { spec_json: huge })
+            .await
+            .unwrap_err()
+            .code();
+        let jobs = client.status(v1::StatusRequest { job: None }).await.unwrap().into_inner().jobs.len();
+        (code, jobs)
+    });
+    assert_eq!(code, tonic::Code::OutOfRange);
+    assert_eq!(jobs, 0);
 }
