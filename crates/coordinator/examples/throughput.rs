@@ -1,0 +1,106 @@
+//! Coordinator throughput with synthetic workers: outcomes committed per second through the
+//! scheduler (validation, SQLite commit with synchronous=FULL, ledger) and CPU per outcome,
+//! without networking or integration.
+//!
+//! cargo run --release -p salient-coordinator --example throughput -- [full|fast-pss] [visited]
+
+use salient_coordinator::scheduler::{Config, Scheduler};
+use salient_grid::spec;
+use salient_proto::v1;
+use salient_proto::PROTOCOL_VERSION;
+use salient_store::Store;
+use std::time::Instant;
+
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<f64> = rest
+        .split_whitespace()
+        .filter_map(|x| x.parse().ok())
+        .collect();
+    f.get(11).zip(f.get(12)).map_or(f64::NAN, |(u, s)| (u + s) / 100.0)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let mode = args.get(1).map_or("full", |s| s.as_str()).to_string();
+    let visited: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(0);
+    let json = format!(
+        r#"{{"name": "bench", "system": {{"kind": "henon-heiles", "energy": 0.125}},
+            "grid": {{"cells": [400, 400], "tile": [20, 20], "mode": "{mode}"}},
+            "sweep": {{"method": ["tm-sbab2c"], "tau": [0.5], "t_final": [1e4]}}}}"#
+    );
+    let job_spec = spec::parse(&json, true).unwrap();
+    let grid = job_spec.grid();
+    let checkpoints = job_spec.cell_run(0).checkpoint_steps().len();
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(&dir.path().join("bench.db")).unwrap();
+    let mut s = Scheduler::new(store, Config::default()).unwrap();
+    let (job, _) = s.submit(&json).unwrap();
+    let workers: Vec<String> = (0..8)
+        .map(|_| {
+            s.register(&v1::RegisterRequest {
+                protocol_version: PROTOCOL_VERSION,
+                name: "synthetic".into(),
+                threads: 16,
+            })
+            .unwrap()
+            .worker_id
+        })
+        .collect();
+    let compatible: Vec<u32> = grid.canonical().to_vec();
+    let fake = |cell: u32| {
+        // Visited cells spread over the grid, sorted: like a chaotic orbit's crossings.
+        let pos = grid.position(cell).unwrap();
+        let mut v: Vec<u32> = (1..=visited)
+            .map(|k| compatible[(pos * 7919 + k * 104_729) % compatible.len()])
+            .collect();
+        v.sort_unstable();
+        v.dedup();
+        v1::Outcome {
+            cell,
+            class: 1,
+            status: 1,
+            sali: 0.5,
+            visited: v,
+            steps: 20_000,
+            checkpoints: vec![1; checkpoints],
+        }
+    };
+    let mut held: Vec<Option<v1::Lease>> = vec![None; workers.len()];
+    let (t0, c0) = (Instant::now(), cpu_seconds());
+    let (mut outcomes, mut reports) = (0u64, 0u64);
+    let mut k = 0;
+    while !s.is_finished(job).unwrap() {
+        let w = k % workers.len();
+        k += 1;
+        let report = held[w].take().map(|l| {
+            let tile = l.lease.unwrap();
+            outcomes += l.cells.len() as u64;
+            reports += 1;
+            v1::TileReport {
+                lease: Some(tile),
+                outcomes: l.cells.iter().map(|&c| fake(c)).collect(),
+                finished: true,
+                ..Default::default()
+            }
+        });
+        let reply = s
+            .poll(&v1::PollRequest {
+                worker_id: workers[w].clone(),
+                free_slots: 1,
+                reports: report.into_iter().collect(),
+                ..Default::default()
+            })
+            .unwrap();
+        held[w] = reply.leases.into_iter().next();
+    }
+    let (wall, cpu) = (t0.elapsed().as_secs_f64(), cpu_seconds() - c0);
+    println!(
+        "mode {mode}, {visited} visited per outcome: {outcomes} outcomes in {reports} reports, \
+         {wall:.2} s wall, {:.0} outcomes/s, {:.1} µs CPU per outcome, {:.2} ms per report",
+        outcomes as f64 / wall,
+        1e6 * cpu / outcomes as f64,
+        1e3 * wall / reports as f64
+    );
+}
