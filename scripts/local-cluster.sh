@@ -21,6 +21,8 @@
 #   SALIENT_TOKEN          shared token, passed to every process (default: none)
 #   SALIENT_START_TIMEOUT  seconds to wait for the coordinator to answer (default: 30)
 #   SALIENT_STOP_TIMEOUT   seconds to wait for the workers to drain before SIGKILL (default: 300)
+#   SALIENT_COORDINATOR_ARGS  extra flags for the coordinator (e.g. --lease-cells-per-thread 4)
+#   SALIENT_WORKER_ARGS    extra flags for every worker (e.g. --leases 1)
 #   RUST_LOG               log filter for every process
 #
 # Run folder: salient.db (the coordinator's store), coordinator.log, worker-1.log ...,
@@ -159,7 +161,11 @@ trap 'exit 143' TERM
 trap 'exit 129' HUP
 
 # --- start ------------------------------------------------------------------------------------
-start "$dir/coordinator.log" "$bin" coordinator --listen "127.0.0.1:$port" --db "$db"
+# Extra flags, word-split on purpose (e.g. SALIENT_COORDINATOR_ARGS="--lease-cells-per-thread 4").
+read -r -a coordinator_args <<<"${SALIENT_COORDINATOR_ARGS:-}"
+read -r -a worker_args <<<"${SALIENT_WORKER_ARGS:-}"
+start "$dir/coordinator.log" "$bin" coordinator --listen "127.0.0.1:$port" --db "$db" \
+  ${coordinator_args[@]+"${coordinator_args[@]}"}
 coord_pid=$!
 echo "$coord_pid" >"$dir/coordinator.pid"
 
@@ -179,7 +185,7 @@ done
 
 for i in $(seq "$workers"); do
   start "$dir/worker-$i.log" "$bin" worker --coordinator "$SALIENT_COORDINATOR" \
-    --threads "$threads" --name "local-$i"
+    --threads "$threads" --name "local-$i" ${worker_args[@]+"${worker_args[@]}"}
   worker_pids+=("$!")
 done
 

@@ -133,8 +133,16 @@ fn assert_same_outputs(a: &Path, b: &Path) {
 
 /// The number after `key` in a log line.
 fn field(line: &str, key: &str) -> u64 {
-    let at = line.find(key).unwrap_or_else(|| panic!("no {key} in {line}")) + key.len();
-    line[at..].split(|c: char| !c.is_ascii_digit()).next().unwrap().parse().unwrap()
+    let at = line
+        .find(key)
+        .unwrap_or_else(|| panic!("no {key} in {line}"))
+        + key.len();
+    line[at..]
+        .split(|c: char| !c.is_ascii_digit())
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap()
 }
 
 fn write_spec(dir: &Path, text: &str) -> String {
@@ -325,8 +333,15 @@ t_final = [2e4]
     assert!(log.contains("resumed"), "{log}");
     // Committed work is not redone: the restarted coordinator leases at most the cells that
     // had no committed outcome (full mode: every compatible cell once).
-    let resumed = field(log.lines().find(|l| l.contains("resumed")).unwrap(), "resolved=");
-    let leased_after: u64 = log.lines().filter(|l| l.contains(" leased ")).map(|l| field(l, "cells=")).sum();
+    let resumed = field(
+        log.lines().find(|l| l.contains("resumed")).unwrap(),
+        "resolved=",
+    );
+    let leased_after: u64 = log
+        .lines()
+        .filter(|l| l.contains(" leased "))
+        .map(|l| field(l, "cells="))
+        .sum();
     assert!(resumed > 0);
     assert!(
         leased_after + resumed <= progress.1,
@@ -481,34 +496,62 @@ fn a_worker_killed_mid_run_has_its_tile_leased_again() {
         d,
         "name = \"kill\"\n[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [30, 30]\ntile = [15, 15]\nmode = \"full\"\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [1e5]\n",
     );
-    let (_c, url) = coordinator_with(d, "127.0.0.1:0", "coordinator.log", &["--lease-seconds", "1"]);
+    let (_c, url) = coordinator_with(
+        d,
+        "127.0.0.1:0",
+        "coordinator.log",
+        &["--lease-seconds", "1"],
+    );
     // Worker 1 registers first, so the coordinator calls it w1.
     let mut w1 = worker(d, &url, 1);
     wait_for("worker 1 to register", Duration::from_secs(30), || {
-        std::fs::read_to_string(d.join("coordinator.log")).unwrap().contains("worker registered")
+        std::fs::read_to_string(d.join("coordinator.log"))
+            .unwrap()
+            .contains("worker registered")
     });
     let _w2 = worker(d, &url, 2);
-    let job = json_stdout(&client(&["submit", &spec, "--json"], &url))["job"].as_u64().unwrap();
+    let job = json_stdout(&client(&["submit", &spec, "--json"], &url))["job"]
+        .as_u64()
+        .unwrap();
     wait_for("worker 1 to hold a lease", Duration::from_secs(30), || {
-        std::fs::read_to_string(d.join("coordinator.log")).unwrap().contains("worker=\"w1\"")
+        std::fs::read_to_string(d.join("coordinator.log"))
+            .unwrap()
+            .contains("worker=\"w1\"")
     });
     w1.0.kill().unwrap();
     w1.0.wait().unwrap();
     let dist = d.join("dist");
     json_stdout(&client(
-        &["results", &job.to_string(), "--wait", "--json", "--out", dist.to_str().unwrap()],
+        &[
+            "results",
+            &job.to_string(),
+            "--wait",
+            "--json",
+            "--out",
+            dist.to_str().unwrap(),
+        ],
         &url,
     ));
     let log = std::fs::read_to_string(d.join("coordinator.log")).unwrap();
-    let lapsed = log.lines().find(|l| l.contains("lease lapsed")).expect("a lease lapsed");
+    let lapsed = log
+        .lines()
+        .find(|l| l.contains("lease lapsed"))
+        .expect("a lease lapsed");
     let (tile, attempt) = (field(lapsed, "tile="), field(lapsed, "attempt="));
     let again = format!("tile={tile} attempt={}", attempt + 1);
     assert!(
-        log.lines().any(|l| l.contains(" leased ") && l.contains(&again) && l.contains("worker=\"w2\"")),
+        log.lines()
+            .any(|l| l.contains(" leased ") && l.contains(&again) && l.contains("worker=\"w2\"")),
         "tile {tile} was not leased again to w2"
     );
     let emb = d.join("emb");
-    json_stdout(&salient(&["run", &spec, "--json", "--out", emb.to_str().unwrap()]));
+    json_stdout(&salient(&[
+        "run",
+        &spec,
+        "--json",
+        "--out",
+        emb.to_str().unwrap(),
+    ]));
     assert_same_outputs(&emb, &dist);
 }
 
@@ -519,7 +562,11 @@ fn oversize_messages_are_refused_and_change_nothing() {
     let rt = tokio::runtime::Runtime::new().unwrap();
     let (code, jobs) = rt.block_on(async {
         use salient_proto::v1;
-        let channel = tonic::transport::Endpoint::from_shared(url.clone()).unwrap().connect().await.unwrap();
+        let channel = tonic::transport::Endpoint::from_shared(url.clone())
+            .unwrap()
+            .connect()
+            .await
+            .unwrap();
         let token: tonic::metadata::MetadataValue<_> = format!("Bearer {TOKEN}").parse().unwrap();
         let mut client = v1::client_service_client::ClientServiceClient::with_interceptor(
             channel,
@@ -535,7 +582,13 @@ fn oversize_messages_are_refused_and_change_nothing() {
             .await
             .unwrap_err()
             .code();
-        let jobs = client.status(v1::StatusRequest { job: None }).await.unwrap().into_inner().jobs.len();
+        let jobs = client
+            .status(v1::StatusRequest { job: None })
+            .await
+            .unwrap()
+            .into_inner()
+            .jobs
+            .len();
         (code, jobs)
     });
     assert_eq!(code, tonic::Code::OutOfRange);

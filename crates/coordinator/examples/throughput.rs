@@ -18,7 +18,9 @@ fn cpu_seconds() -> f64 {
         .split_whitespace()
         .filter_map(|x| x.parse().ok())
         .collect();
-    f.get(11).zip(f.get(12)).map_or(f64::NAN, |(u, s)| (u + s) / 100.0)
+    f.get(11)
+        .zip(f.get(12))
+        .map_or(f64::NAN, |(u, s)| (u + s) / 100.0)
 }
 
 fn main() {

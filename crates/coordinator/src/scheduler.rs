@@ -19,6 +19,9 @@ pub struct Config {
     pub lease: Duration,
     /// How often workers poll while busy.
     pub poll: Duration,
+    /// Fast PSS: cells per worker thread in one lease. Small leases are judged on fresher
+    /// claims (less dropped work); large ones cost fewer round trips.
+    pub lease_cells_per_thread: usize,
 }
 
 impl Default for Config {
@@ -26,12 +29,10 @@ impl Default for Config {
         Config {
             lease: Duration::from_secs(30),
             poll: Duration::from_millis(200),
+            lease_cells_per_thread: 2 * salient_grid::executor::LANES,
         }
     }
 }
-
-/// Fast PSS leases at most this many cells per worker thread.
-const LEASE_CELLS_PER_THREAD: usize = 2 * salient_grid::executor::LANES;
 
 /// A (job, run, tile) lease's work, without the attempt.
 type TileKey = (u64, u32, u32);
@@ -511,7 +512,7 @@ impl Scheduler {
     }
 
     /// The next tile with cells that need an orbit, FIFO over jobs and in order over runs and
-    /// tiles (from each run's frontier on), and those cells.
+    /// tiles (from each run's frontier on, a bounded window), and those cells.
     fn next_tile(&self) -> Option<(TileKey, Vec<u32>)> {
         for job in self.jobs.values() {
             if job.state.is_terminal() {
@@ -526,7 +527,13 @@ impl Scheduler {
                     .canonical()
                     .get(run.ledger.frontier())
                     .map_or(0, |&c| run.grid.tile_of(c));
-                for t in first..run.tiles.len() {
+                // Speculation beyond the frontier's tile is bounded to about a tile per worker:
+                // further cells are likely to be labelled meanwhile, and scanning the whole
+                // grid on every poll of an idle worker cost the coordinator more CPU than the
+                // leases themselves. (Later runs of the job are scanned next: their frontier
+                // is certain work.)
+                let last = (first + 1 + self.workers.len().max(1)).min(run.tiles.len());
+                for t in first..last {
                     if run.tiles[t].lease.is_some() {
                         continue;
                     }
@@ -674,7 +681,7 @@ impl Scheduler {
                 // judged on the latest claims, so speculation stays about one batch per worker
                 // (a tile with wanted cells left is leased again once this lease finishes).
                 if self.jobs[&key.0].spec.grid.mode == salient_grid::Mode::FastPss {
-                    cells.truncate(threads * LEASE_CELLS_PER_THREAD);
+                    cells.truncate((threads * self.cfg.lease_cells_per_thread).max(1));
                 }
                 leases.push(self.lease(worker, key, cells)?);
             }

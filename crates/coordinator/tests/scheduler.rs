@@ -25,6 +25,7 @@ fn config() -> Config {
     Config {
         lease: Duration::from_secs(60),
         poll: Duration::from_millis(10),
+        ..Config::default()
     }
 }
 
@@ -260,6 +261,7 @@ fn a_lapsed_lease_goes_to_another_worker_and_the_old_report_is_stale() {
         Config {
             lease: Duration::from_millis(1),
             poll: Duration::from_millis(1),
+            ..Config::default()
         },
     )
     .unwrap();

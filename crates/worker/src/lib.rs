@@ -367,7 +367,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     outbox.retain(|o| o.lease.as_ref() != Some(r));
                 }
                 hungry = if reply.leases.is_empty() {
-                    (hungry * 2).min(busy)
+                    (hungry * 2).min(busy).min(Duration::from_millis(10))
                 } else {
                     Duration::from_millis(2)
                 };
