@@ -109,7 +109,7 @@ fn run_writes_the_contract_and_never_lists_incompatible_cells() {
     let mut lines = csv.lines();
     assert_eq!(
         lines.next().unwrap(),
-        "i,j,q2,p2,sali,class,status,label_source"
+        "i,j,q2,p2,sali,class,status,label_source,t_end"
     );
     let mut rows = 0;
     for l in lines {
@@ -189,7 +189,7 @@ fn bad_specs_exit_2_naming_the_field_and_write_nothing() {
             "method = [\"dop853\"]\ndelta = [-1e-5]",
             "sweep.delta",
         ),
-        ("energy = 0.125", "energy = 0.3", "system.energy"),
+        ("energy = 0.125", "energy = 1.5", "system.energy"),
         (
             "kind = \"henon-heiles\"",
             "kind = \"lorenz\"",

@@ -77,6 +77,9 @@ pub struct OrbitArgs {
     /// Integrate to t_final even after SALI falls below the chaotic threshold.
     #[arg(long)]
     no_early_stop: bool,
+    /// Stop with status energy-drift once |ΔH/H| exceeds this.
+    #[arg(long, default_value_t = salient_core::orbit::ENERGY_DRIFT_DEFAULT)]
+    energy_drift: f64,
     /// Initial deviation vectors: the phase-space axes, or seeded random unit vectors.
     #[arg(long, value_enum, default_value = "axes")]
     deviation: DeviationKind,
@@ -160,6 +163,7 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
     };
     let regular = positive("--regular", a.regular)?;
     let chaotic = positive("--chaotic", a.chaotic)?;
+    let energy_drift = positive("--energy-drift", a.energy_drift)?;
     if !(chaotic <= regular && regular <= 2f64.sqrt()) {
         return Err(CliError::Usage(format!(
             "--chaotic and --regular must satisfy 0 < chaotic ≤ regular ≤ √2 (got {chaotic}, {regular})"
@@ -189,6 +193,7 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
             regular,
             chaotic,
             early_stop: !a.no_early_stop,
+            energy_drift,
         },
         deviation,
         escape_radius: None,

@@ -5,7 +5,7 @@ use crate::spec::{self, JobSpec, RunSpec};
 use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use salient_core::orbit::Class;
+use salient_core::orbit::{Class, Status};
 use salient_grid::{run_embedded, CellRun, Counts, Grid, Ledger, Mode};
 use salient_report::{
     render_grey_map_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LogLogPlot, Table,
@@ -247,7 +247,7 @@ pub fn write_run(job: &JobSpec, r: &RunResult) -> CliResult<()> {
     let dir = &r.dir;
     std::fs::create_dir_all(dir).map_err(|e| runtime(&format!("creating {}", dir.display()), e))?;
     let g = &r.grid;
-    let mut csv = String::from("i,j,q2,p2,sali,class,status,label_source\n");
+    let mut csv = String::from("i,j,q2,p2,sali,class,status,label_source,t_end\n");
     let mut class_codes = vec![0u8; g.cells()];
     let mut sali = vec![f64::NAN; g.cells()];
     for cell in 0..g.cells() as u32 {
@@ -262,17 +262,19 @@ pub fn write_run(job: &JobSpec, r: &RunResult) -> CliResult<()> {
         let (q2, p2) = g.centre(cell);
         let _ = writeln!(
             csv,
-            "{i},{j},{q2},{p2},{},{},{},{}",
+            "{i},{j},{q2},{p2},{},{},{},{},{}",
             l.sali,
             class_str(l.class),
             l.status.as_str(),
-            l.source
+            l.source,
+            l.t_end
         );
         class_codes[cell as usize] = match l.class {
             Some(Class::Regular) => 1,
             Some(Class::Sticky) => 2,
             Some(Class::Chaotic) => 3,
-            None => 4,
+            None if l.status == Status::Escaped => 4,
+            None => 5,
         };
         sali[cell as usize] = l.sali;
     }
@@ -338,8 +340,8 @@ fn run_json(r: &RunResult) -> Value {
         "mode": match r.ledger.mode() { Mode::FastPss => "fast-pss", Mode::Full => "full" },
         "cells": [r.grid.n_q2, r.grid.n_p2],
         "compatible": c.compatible,
-        "percent": { "regular": reg, "sticky": st, "chaotic": ch, "unclassified": c.percent_unclassified() },
-        "counts": { "regular": c.regular, "sticky": c.sticky, "chaotic": c.chaotic, "unclassified": c.unclassified },
+        "percent": { "regular": reg, "sticky": st, "chaotic": ch, "escaped": c.percent_escaped(), "unclassified": c.percent_unclassified() },
+        "counts": { "regular": c.regular, "sticky": c.sticky, "chaotic": c.chaotic, "escaped": c.escaped, "unclassified": c.unclassified },
         "status_counts": c.status,
         "orbits_integrated": r.ledger.committed.len(),
         "orbits_dropped": r.ledger.dropped,
@@ -351,8 +353,20 @@ fn run_json(r: &RunResult) -> Value {
     })
 }
 
+/// Statuses without a class besides `escaped`: a column each in the table when any run has
+/// cells labelled by them.
+const FAILURES: [Status; 3] = [Status::EnergyDrift, Status::NonFinite, Status::StepLimit];
+
 fn sweep_table(results: &[RunResult]) -> Table {
-    let mut t = Table::new(&[
+    let failures: Vec<Status> = FAILURES
+        .into_iter()
+        .filter(|&s| results.iter().any(|r| r.counts.with_status(s) > 0))
+        .collect();
+    let failure_headers: Vec<String> = failures
+        .iter()
+        .map(|s| format!("% {}", s.as_str()))
+        .collect();
+    let mut headers = vec![
         "tau",
         "t_final",
         "method",
@@ -360,15 +374,14 @@ fn sweep_table(results: &[RunResult]) -> Table {
         "% regular",
         "% sticky",
         "% chaotic",
-        "orbits",
-        "dropped",
-        "% steps dropped",
-        "CPU s",
-        "wall s",
-    ]);
+        "% escaped",
+    ];
+    headers.extend(failure_headers.iter().map(|s| s.as_str()));
+    headers.extend(["orbits", "dropped", "% steps dropped", "CPU s", "wall s"]);
+    let mut t = Table::new(&headers);
     for r in results {
         let (a, b, c) = r.counts.percent();
-        t.push(vec![
+        let mut row = vec![
             format!("{}", r.spec.tau),
             format!("{:e}", r.spec.t_final),
             r.spec.method.name(),
@@ -376,6 +389,15 @@ fn sweep_table(results: &[RunResult]) -> Table {
             format!("{a:.2}"),
             format!("{b:.2}"),
             format!("{c:.2}"),
+            format!("{:.2}", r.counts.percent_escaped()),
+        ];
+        for &s in &failures {
+            row.push(format!(
+                "{:.2}",
+                100.0 * r.counts.with_status(s) as f64 / r.counts.compatible.max(1) as f64
+            ));
+        }
+        row.extend([
             r.ledger.committed.len().to_string(),
             r.ledger.dropped.to_string(),
             {
@@ -388,6 +410,7 @@ fn sweep_table(results: &[RunResult]) -> Table {
             format!("{:.2}", r.cpu_s),
             format!("{:.2}", r.wall_s),
         ]);
+        t.push(row);
     }
     t
 }

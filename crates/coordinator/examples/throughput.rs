@@ -67,6 +67,7 @@ fn main() {
             visited: v,
             steps: 20_000,
             checkpoints: vec![1; checkpoints],
+            t_end: 1e4,
         }
     };
     let mut held: Vec<Option<v1::Lease>> = vec![None; workers.len()];

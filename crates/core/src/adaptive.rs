@@ -271,11 +271,20 @@ impl<const K: usize> Books<'_, K> {
         {
             return Some(Status::NonFinite);
         }
+        // Every step end: an adaptive step costs far more than an energy evaluation.
+        let e = energy_error();
         if r2 > self.r2_max {
-            return Some(Status::Escaped);
+            // Left the well by gaining energy: the integration blew up, nothing escaped.
+            #[allow(clippy::neg_cmp_op_on_partial_ord)]
+            return Some(if !(e <= self.config.thresholds.energy_drift) {
+                Status::EnergyDrift
+            } else {
+                Status::Escaped
+            });
         }
-        if self.requests.energy {
-            self.energy_max = self.energy_max.max(energy_error());
+        self.energy_max = self.energy_max.max(e);
+        if e > self.config.thresholds.energy_drift {
+            return Some(Status::EnergyDrift);
         }
         None
     }

@@ -23,6 +23,9 @@ pub enum Status {
     NonFinite,
     /// An adaptive method could not keep its step above the smallest allowed.
     StepLimit,
+    /// |ΔH/H| exceeded the configured limit: the integration is not to be trusted (a
+    /// splitting step beyond its stability limit, a tolerance far too loose).
+    EnergyDrift,
 }
 
 impl Status {
@@ -33,6 +36,7 @@ impl Status {
             Status::Escaped => "escaped",
             Status::NonFinite => "non-finite",
             Status::StepLimit => "step-limit",
+            Status::EnergyDrift => "energy-drift",
         }
     }
 }
@@ -63,7 +67,23 @@ pub struct Thresholds {
     pub chaotic: f64,
     /// Stop as soon as SALI < `chaotic` (the paper's convention).
     pub early_stop: bool,
+    /// An orbit whose |ΔH/H| exceeds this stops with status `energy-drift` and no class
+    /// (infinity: never).
+    #[serde(default = "default_energy_drift")]
+    pub energy_drift: f64,
 }
+
+fn default_energy_drift() -> f64 {
+    ENERGY_DRIFT_DEFAULT
+}
+
+/// Default limit on |ΔH/H| before an orbit is declared `energy-drift`.
+pub const ENERGY_DRIFT_DEFAULT: f64 = 1e-2;
+
+/// The tangent-map driver checks the energy every this many steps (and at the last): a
+/// splitting step beyond its stability limit blows the energy up within a few steps, and a
+/// check every step would cost a tenth of a step.
+pub const ENERGY_CHECK_EVERY: u64 = 16;
 
 impl Default for Thresholds {
     fn default() -> Self {
@@ -71,6 +91,7 @@ impl Default for Thresholds {
             regular: 1e-4,
             chaotic: 1e-8,
             early_stop: true,
+            energy_drift: ENERGY_DRIFT_DEFAULT,
         }
     }
 }
@@ -390,10 +411,13 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
         let r2 = dot(&x.q, &x.q);
         #[allow(clippy::neg_cmp_op_on_partial_ord)]
         if !(r2 <= self.r2_max) {
-            self.status = if r2.is_finite() {
-                Status::Escaped
-            } else {
+            self.status = if !r2.is_finite() {
                 Status::NonFinite
+            } else if !(self.energy_error(x) <= self.thresholds.energy_drift) {
+                // Left the well by gaining energy: the integration blew up, nothing escaped.
+                Status::EnergyDrift
+            } else {
+                Status::Escaped
             };
             return true;
         }
@@ -419,11 +443,20 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
             out.crossings
                 .push(locate_upward(map, q_prev, p_prev, t_prev));
         }
-        if self.requests.energy {
-            let e = (self.ham.energy(&x.q, &x.p) - self.h0).abs() / self.h_scale;
-            self.energy_max = self.energy_max.max(e);
-        }
         let th = self.thresholds;
+        if self.requests.energy || n.is_multiple_of(ENERGY_CHECK_EVERY) || n == self.n_final {
+            let e = self.energy_error(x);
+            self.energy_max = self.energy_max.max(e);
+            #[allow(clippy::neg_cmp_op_on_partial_ord)]
+            if !(e <= th.energy_drift) {
+                self.status = if e.is_nan() {
+                    Status::NonFinite
+                } else {
+                    Status::EnergyDrift
+                };
+                return true;
+            }
+        }
         if th.early_stop {
             let c = dot(&x.dq[0], &x.dq[1]) + dot(&x.dp[0], &x.dp[1]);
             if may_be_aligned(n2[0], n2[1], c, th.chaotic)
@@ -479,6 +512,13 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
         }
     }
 
+    fn energy_error<const N: usize>(&self, x: &Phase<f64, N, K>) -> f64
+    where
+        H: Hamiltonian<N>,
+    {
+        (self.ham.energy(&x.q, &x.p) - self.h0).abs() / self.h_scale
+    }
+
     fn sample<const N: usize>(&self, x: &Phase<f64, N, K>, t: f64) -> Sample
     where
         H: Hamiltonian<N>,
@@ -492,7 +532,7 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
                 Vec::new()
             },
             mle: mle(&self.growth[0], x, t),
-            energy_error: (self.ham.energy(&x.q, &x.p) - self.h0).abs() / self.h_scale,
+            energy_error: self.energy_error(x),
         }
     }
 }

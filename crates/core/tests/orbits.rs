@@ -234,12 +234,58 @@ fn escaping_and_exploding_orbits_get_a_status_not_a_class() {
     assert_eq!(res.status, Status::Escaped);
     assert_eq!(res.class, None);
     assert!(res.t_reached < 1e4);
-    // Without an escape radius the cubic potential blows the orbit up in finite time.
+    // Without an escape radius the cubic potential blows the orbit up in finite time: the
+    // energy check sees the step fail first, and without it the values overflow.
     let mut cfg = OrbitConfig::new(0.05, 1e4);
     cfg.escape_radius = Some(f64::INFINITY);
     let res = integrate::<_, 2, 2>(&map, q, p, &cfg, &Requests::default());
+    assert_eq!(res.status, Status::EnergyDrift);
+    assert!(res.sali.is_nan() && res.class.is_none() && res.t_reached < 1e4);
+    cfg.thresholds.energy_drift = f64::INFINITY;
+    let res = integrate::<_, 2, 2>(&map, q, p, &cfg, &Requests::default());
     assert_eq!(res.status, Status::NonFinite);
     assert!(res.sali.is_nan() && res.class.is_none() && res.t_reached < 1e4);
+}
+
+#[test]
+fn a_splitting_step_beyond_its_stability_limit_ends_in_energy_drift() {
+    let ham = HenonHeiles;
+    let x = r1();
+    let run = |tau: f64, limit: f64| {
+        let map = TangentMap::new(&ham, &sbab2c(), tau);
+        let mut cfg = OrbitConfig::new(tau, 1e3);
+        cfg.thresholds.energy_drift = limit;
+        integrate::<_, 2, 2>(&map, x.0, x.1, &cfg, &Requests::default())
+    };
+    // τ = 0.5: R1's energy error stays near 2e-3, the orbit is classified.
+    let ok = run(0.5, 1e-2);
+    assert_eq!((ok.status, ok.class), (Status::Ok, Some(Class::Regular)));
+    // τ = 1, 2, 5: the energy error passes 1e-2 (or the orbit leaves the well with the
+    // energy it gained — not an escape at H = 1/8) within the first checks.
+    for tau in [1.0, 2.0, 5.0] {
+        let r = run(tau, 1e-2);
+        assert_eq!(r.status, Status::EnergyDrift, "τ = {tau}");
+        assert!(r.class.is_none() && r.sali.is_nan(), "τ = {tau}");
+        let checks = salient_core::orbit::ENERGY_CHECK_EVERY as f64 * tau;
+        assert!(
+            r.t_reached <= checks,
+            "τ = {tau}: stopped at {}",
+            r.t_reached
+        );
+    }
+    // The limit is the user's: at τ = 1 a limit of 0.5 lets R1 through.
+    assert_eq!(run(1.0, 0.5).status, Status::Ok);
+    // A true escape conserves the energy and stays `escaped`.
+    let map = TangentMap::new(&ham, &sbab2c(), 0.05);
+    let (q, p) = salient_core::section::on_section(&ham, 0.3, &[0.5], &[0.6]).unwrap();
+    let res = integrate::<_, 2, 2>(
+        &map,
+        q,
+        p,
+        &OrbitConfig::new(0.05, 1e4),
+        &Requests::default(),
+    );
+    assert_eq!(res.status, Status::Escaped);
 }
 
 #[test]

@@ -78,6 +78,7 @@ fn outcome(
         sali: r.sali,
         visited,
         steps: r.steps,
+        t_end: r.t_reached,
         checkpoints: classes,
     }
 }

@@ -30,6 +30,8 @@ pub struct Outcome {
     /// Compatible cells its upward crossings fell in, sorted and deduplicated.
     pub visited: Vec<u32>,
     pub steps: u64,
+    /// The time the orbit reached: t_final, or when it stopped (early stop, escape, …).
+    pub t_end: f64,
     /// Classes at the run's checkpoints (full mode with checkpoints; empty otherwise).
     pub checkpoints: Vec<Option<Class>>,
 }
@@ -42,6 +44,8 @@ pub struct Label {
     pub sali: f64,
     /// The cell whose orbit labelled this one.
     pub source: u32,
+    /// The time that orbit reached (its escape time for `escaped`).
+    pub t_end: f64,
 }
 
 /// Commits outcomes in canonical order.
@@ -236,6 +240,7 @@ impl Ledger {
             status: o.status,
             sali: o.sali,
             source: o.cell,
+            t_end: o.t_end,
         };
         self.labels[o.cell as usize] = Some(label);
         self.newly_labelled.push(o.cell);
@@ -269,6 +274,7 @@ pub fn sequential(
             status: o.status,
             sali: o.sali,
             source: cell,
+            t_end: o.t_end,
         };
         labels[cell as usize] = Some(label);
         if mode == Mode::FastPss {
@@ -320,6 +326,7 @@ mod tests {
             sali: 0.5,
             visited,
             steps: 100,
+            t_end: 1.0,
             checkpoints: Vec::new(),
         }
     }

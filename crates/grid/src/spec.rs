@@ -152,6 +152,7 @@ struct RawClassify {
     regular: Option<f64>,
     chaotic: Option<f64>,
     early_stop: Option<bool>,
+    energy_drift: Option<f64>,
 }
 
 /// A spec that cannot run: one line naming the field and the allowed range.
@@ -432,7 +433,10 @@ fn read_raw(v: &Value) -> SpecResult<RawSpec> {
     let grid = top.req_table("grid", &["cells", "tile", "mode", "q2", "p2"])?;
     let sweep = top.req_table("sweep", &["method", "tau", "t_final", "delta"])?;
     let integration = top.opt_table("integration", &["protocol", "deviation", "seed"])?;
-    let classify = top.opt_table("classify", &["regular", "chaotic", "early_stop"])?;
+    let classify = top.opt_table(
+        "classify",
+        &["regular", "chaotic", "early_stop", "energy_drift"],
+    )?;
     Ok(RawSpec {
         name: top.opt("name", string)?,
         system: RawSystem {
@@ -465,6 +469,7 @@ fn read_raw(v: &Value) -> SpecResult<RawSpec> {
                 regular: t.opt("regular", number)?,
                 chaotic: t.opt("chaotic", number)?,
                 early_stop: t.opt("early_stop", boolean)?,
+                energy_drift: t.opt("energy_drift", number)?,
             }),
             None => None,
         },
@@ -534,8 +539,14 @@ fn range(
     Ok((lo, hi))
 }
 
-/// Default section bounds of Hénon–Heiles at energy H (0 < H < 1/6): q2 between the two real
-/// roots of q2² − (2/3) q2³ = 2H that bracket 0, p2 in [−√(2H), √(2H)].
+/// Largest energy a spec may ask for: six times the escape energy, where most orbits leave
+/// within a few crossings.
+const MAX_ENERGY: f64 = 1.0;
+
+/// Default section bounds of Hénon–Heiles at energy H: q2 between the two real roots of
+/// q2² − (2/3) q2³ = 2H that bracket 0, p2 in [−√(2H), √(2H)]. Above the escape energy 1/6
+/// the region opens through the saddle at q2 = 1 and has no right root; the bounded part
+/// below the saddle, q2 ≤ 1, is used (where |p2| ≤ √(2H) still holds).
 pub fn default_bounds(energy: f64) -> ((f64, f64), (f64, f64)) {
     let f = |q: f64| q * q - 2.0 * q * q * q / 3.0 - 2.0 * energy;
     // f(0) = −2H < 0; f(1) = 1/3 − 2H > 0 and f(−2) = 4 + 16/3 − 2H > 0, so bisection between 0
@@ -555,7 +566,8 @@ pub fn default_bounds(energy: f64) -> ((f64, f64), (f64, f64)) {
         0.5 * (neg + pos)
     };
     let p = (2.0 * energy).sqrt();
-    ((bisect(0.0, -2.0), bisect(0.0, 1.0)), (-p, p))
+    let upper = if f(1.0) > 0.0 { bisect(0.0, 1.0) } else { 1.0 };
+    ((bisect(0.0, -2.0), upper), (-p, p))
 }
 
 fn validate(raw: RawSpec) -> SpecResult<JobSpec> {
@@ -575,9 +587,9 @@ fn validate(raw: RawSpec) -> SpecResult<JobSpec> {
         )));
     }
     let energy = raw.system.energy;
-    if !(energy.is_finite() && energy > 0.0 && energy < 1.0 / 6.0) {
+    if !(energy.is_finite() && energy > 0.0 && energy <= MAX_ENERGY) {
         return Err(usage(format!(
-            "system.energy must be in (0, 1/6) (got {energy})"
+            "system.energy must be in (0, {MAX_ENERGY}] (got {energy}; above the escape energy 1/6 orbits may escape)"
         )));
     }
 
@@ -722,10 +734,19 @@ fn validate(raw: RawSpec) -> SpecResult<JobSpec> {
             "classify.chaotic must be ≤ classify.regular (got chaotic = {chaotic}, regular = {regular})"
         )));
     }
+    let energy_drift = c
+        .and_then(|c| c.energy_drift)
+        .unwrap_or(defaults.energy_drift);
+    if !(energy_drift > 0.0 && energy_drift <= 1e300) {
+        return Err(usage(format!(
+            "classify.energy_drift must be in (0, 1e300] (got {energy_drift})"
+        )));
+    }
     let thresholds = Thresholds {
         regular,
         chaotic,
         early_stop: c.and_then(|c| c.early_stop).unwrap_or(defaults.early_stop),
+        energy_drift,
     };
 
     let mut runs = Vec::new();
@@ -805,6 +826,7 @@ seed = 7
 regular = 1e-3
 chaotic = 1e-9
 early_stop = false
+energy_drift = 0.5
 "#;
 
     const GOOD_JSON: &str = r#"{
@@ -814,7 +836,7 @@ early_stop = false
   "sweep": {"method": ["tm-sbab2c", "dop853"], "tau": [0.5, 0.05], "t_final": [1000],
             "delta": [1e-5, 1e-8]},
   "integration": {"protocol": "free", "deviation": "random", "seed": 7},
-  "classify": {"regular": 1e-3, "chaotic": 1e-9, "early_stop": false}
+  "classify": {"regular": 1e-3, "chaotic": 1e-9, "early_stop": false, "energy_drift": 0.5}
 }"#;
 
     const MINIMAL: &str = r#"
@@ -870,7 +892,8 @@ t_final = [1e3]
             Thresholds {
                 regular: 1e-3,
                 chaotic: 1e-9,
-                early_stop: false
+                early_stop: false,
+                energy_drift: 0.5,
             }
         );
         assert!(j.warnings.is_empty(), "{:?}", j.warnings);
@@ -960,14 +983,20 @@ t_final = [1e3]
             }
             assert_eq!((plo, phi), (-(2.0 * h).sqrt(), (2.0 * h).sqrt()));
         }
+        // Above the escape energy the region opens at the saddle q2 = 1: bounded below it.
+        for h in [1.0 / 6.0 + 1e-9, 0.2, 1.0] {
+            let ((lo, hi), _) = default_bounds(h);
+            assert_eq!(hi, 1.0, "{h}");
+            assert!((lo * lo - 2.0 * lo * lo * lo / 3.0 - 2.0 * h).abs() < 1e-14);
+        }
     }
 
     #[test]
     fn messages_read_as_documented() {
         let cases = [
             (
-                GOOD.replace("energy = 0.125", "energy = 0.3"),
-                "system.energy must be in (0, 1/6) (got 0.3)",
+                GOOD.replace("energy = 0.125", "energy = 1.5"),
+                "system.energy must be in (0, 1] (got 1.5; above the escape energy 1/6 orbits may escape)",
             ),
             (
                 GOOD.replace("tau = [0.5, 0.05]", "tau = [0.5, -0.5]"),
@@ -1011,11 +1040,7 @@ t_final = [1e3]
         // (text in GOOD, replacement, what the message must contain)
         let cases: &[(&str, &str, &str)] = &[
             ("energy = 0.125", "energy = -1", "system.energy"),
-            (
-                "energy = 0.125",
-                "energy = 0.16666666666666667",
-                "system.energy",
-            ),
+            ("energy = 0.125", "energy = 1.0000001", "system.energy"),
             ("energy = 0.125", "energy = nan", "system.energy"),
             ("energy = 0.125", "energy = -inf", "system.energy"),
             (
@@ -1161,6 +1186,21 @@ t_final = [1e3]
                 "early_stop = false",
                 "early_stop = 1",
                 "classify.early_stop",
+            ),
+            (
+                "energy_drift = 0.5",
+                "energy_drift = 0",
+                "classify.energy_drift",
+            ),
+            (
+                "energy_drift = 0.5",
+                "energy_drift = nan",
+                "classify.energy_drift",
+            ),
+            (
+                "energy_drift = 0.5",
+                "energy_drift = \"big\"",
+                "classify.energy_drift",
             ),
             (
                 "[classify]",

@@ -13,6 +13,8 @@ pub struct Counts {
     pub chaotic: u64,
     /// Cells labelled by orbits that escaped or failed (no class).
     pub unclassified: u64,
+    /// Of those, cells labelled by orbits that escaped (above the escape energy).
+    pub escaped: u64,
     pub compatible: u64,
     /// Labelled cells per orbit status.
     pub status: BTreeMap<&'static str, u64>,
@@ -26,6 +28,9 @@ impl Counts {
             Some(Class::Sticky) => self.sticky += 1,
             Some(Class::Chaotic) => self.chaotic += 1,
             None => self.unclassified += 1,
+        }
+        if status == Status::Escaped {
+            self.escaped += 1;
         }
         *self.status.entry(status.as_str()).or_default() += 1;
     }
@@ -61,5 +66,14 @@ impl Counts {
 
     pub fn percent_unclassified(&self) -> f64 {
         self.pct(self.unclassified)
+    }
+
+    pub fn percent_escaped(&self) -> f64 {
+        self.pct(self.escaped)
+    }
+
+    /// Cells labelled by orbits with this status.
+    pub fn with_status(&self, status: Status) -> u64 {
+        self.status.get(status.as_str()).copied().unwrap_or(0)
     }
 }

@@ -46,6 +46,7 @@ pub fn status_to_wire(s: Status) -> OrbitStatus {
         Status::Escaped => OrbitStatus::Escaped,
         Status::NonFinite => OrbitStatus::NonFinite,
         Status::StepLimit => OrbitStatus::StepLimit,
+        Status::EnergyDrift => OrbitStatus::EnergyDrift,
     }
 }
 
@@ -56,7 +57,8 @@ fn status_from_wire(v: i32) -> Result<Status, String> {
         Ok(OrbitStatus::Escaped) => Ok(Status::Escaped),
         Ok(OrbitStatus::NonFinite) => Ok(Status::NonFinite),
         Ok(OrbitStatus::StepLimit) => Ok(Status::StepLimit),
-        _ => Err(format!("status {v} is not one of 1..=5")),
+        Ok(OrbitStatus::EnergyDrift) => Ok(Status::EnergyDrift),
+        _ => Err(format!("status {v} is not one of 1..=6")),
     }
 }
 
@@ -74,6 +76,7 @@ impl From<&salient_grid::Outcome> for v1::Outcome {
                 .iter()
                 .map(|&c| class_to_wire(c) as i32)
                 .collect(),
+            t_end: o.t_end,
         }
     }
 }
@@ -113,6 +116,12 @@ pub fn outcome_from_wire(
     if o.sali.is_infinite() || o.sali < 0.0 {
         return Err(format!("outcome.sali must be >= 0 or NaN (got {})", o.sali));
     }
+    if !(o.t_end.is_finite() && o.t_end >= 0.0) {
+        return Err(format!(
+            "outcome.t_end must be finite and >= 0 (got {})",
+            o.t_end
+        ));
+    }
     Ok(Outcome {
         cell: o.cell,
         class,
@@ -120,6 +129,7 @@ pub fn outcome_from_wire(
         sali: o.sali,
         visited: o.visited.clone(),
         steps: o.steps,
+        t_end: o.t_end,
         checkpoints: o
             .checkpoints
             .iter()
@@ -181,6 +191,7 @@ mod tests {
             sali: 1.234_567_890_123_456_7e-6,
             visited: vec![compatible[0], compatible[5]].into_iter().collect(),
             steps: 12345,
+            t_end: 987.5,
             checkpoints: vec![None, Some(Class::Regular), Some(Class::Chaotic)],
         };
         let mut o = o;
@@ -201,6 +212,7 @@ mod tests {
             visited: vec![g.canonical()[1]],
             steps: 1,
             checkpoints: vec![],
+            t_end: 10.0,
         };
         assert!(outcome_from_wire(&ok, &g, 0).is_ok());
         let incompatible = (0..100).find(|&c| !g.is_compatible(c)).unwrap();
@@ -267,6 +279,13 @@ mod tests {
                     ..ok.clone()
                 },
                 "outcome.checkpoints",
+            ),
+            (
+                v1::Outcome {
+                    t_end: f64::NAN,
+                    ..ok.clone()
+                },
+                "outcome.t_end",
             ),
         ];
         for (o, field) in cases {
