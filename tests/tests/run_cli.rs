@@ -204,6 +204,44 @@ fn bad_specs_exit_2_naming_the_field_and_write_nothing() {
         ),
         ("mode = \"fast-pss\"", "mode = \"fastest\"", "mode"),
         ("[grid]", "[grid]\ncolour = 3", "colour"),
+        // Wrong types, non-finite literals, unknown keys anywhere.
+        ("tau = [0.5]", "tau = [\"0.5\"]", "sweep.tau"),
+        ("tau = [0.5]", "tau = 0.5", "sweep.tau"),
+        ("t_final = [2e3]", "t_final = [inf]", "sweep.t_final"),
+        ("t_final = [2e3]", "t_final = [-inf]", "sweep.t_final"),
+        ("cells = [40, 40]", "cells = [40.5, 40]", "grid.cells"),
+        ("cells = [40, 40]", "cells = [40, 40, 40]", "grid.cells"),
+        ("cells = [40, 40]", "cells = [-40, 40]", "grid.cells"),
+        ("energy = 0.125", "energy = \"low\"", "system.energy"),
+        ("energy = 0.125", "energy = inf", "system.energy"),
+        ("[sweep]", "[sweep]\nspeed = 1", "speed"),
+        ("name = \"small\"", "name = \"small\"\nowner = 1", "owner"),
+        ("name = \"small\"", "name = 7", "name"),
+        (
+            "[sweep]",
+            "[classify]\nregular = nan\n[sweep]",
+            "classify.regular",
+        ),
+        (
+            "[sweep]",
+            "[classify]\nenergy_drift = -1\n[sweep]",
+            "classify.energy_drift",
+        ),
+        (
+            "[sweep]",
+            "[integration]\nprotocol = \"fast\"\n[sweep]",
+            "integration.protocol",
+        ),
+        (
+            "[sweep]",
+            "[integration]\nseed = \"x\"\n[sweep]",
+            "integration.seed",
+        ),
+        // Beyond the default cap of 16 000 000 cells.
+        ("cells = [40, 40]", "cells = [4000, 4001]", "grid.cells"),
+        ("cells = [40, 40]", "cells = [5000, 10]", "grid.cells"),
+        // Not TOML at all.
+        ("[grid]", "[grid", "line"),
     ];
     for (i, (from, to, field)) in cases.iter().enumerate() {
         assert!(SMALL.contains(from), "{from}");
@@ -227,4 +265,34 @@ fn bad_specs_exit_2_naming_the_field_and_write_nothing() {
     let o = salient(&["run", &spec, "--threads", "0"]);
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--threads"));
+    // The cell cap is configurable: 1600 cells are refused under a cap of 1000.
+    let out = dir.path().join("capped");
+    let o = salient(&[
+        "run",
+        &spec,
+        "--max-cells",
+        "1000",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("grid.cells") && stderr.contains("1000"),
+        "{stderr}"
+    );
+    assert!(!out.exists());
+    // Bad flags are refused by the flag parser with exit 2 too.
+    for args in [
+        vec!["run", &spec, "--threads", "many"],
+        vec!["run", &spec, "--max-cells", "-1"],
+        vec!["run", &spec, "--bogus"],
+        vec!["run"],
+    ] {
+        let o = salient(&args);
+        assert_eq!(o.status.code(), Some(2), "{args:?}");
+    }
+    let o = salient(&["run", dir.path().join("missing.toml").to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("missing.toml"));
 }

@@ -53,6 +53,9 @@ pub struct SubmitArgs {
     /// With --wait: also write the results' files here.
     #[arg(long, requires = "wait")]
     out: Option<PathBuf>,
+    /// Refuse specs whose grid holds more cells than this (the coordinator has its own cap).
+    #[arg(long, default_value_t = spec::MAX_CELLS)]
+    max_cells: usize,
 }
 
 #[derive(Args, Debug)]
@@ -134,8 +137,8 @@ async fn connect(c: &Connection) -> CliResult<Client> {
 }
 
 /// The spec as the JSON the coordinator takes (a valid TOML spec converts losslessly).
-fn spec_json(path: &Path) -> CliResult<(JobSpec, String)> {
-    let job = spec::load(path)?;
+fn spec_json(path: &Path, max_cells: usize) -> CliResult<(JobSpec, String)> {
+    let job = spec::load(path, max_cells)?;
     let text = std::fs::read_to_string(path)
         .map_err(|e| CliError::Usage(format!("spec: cannot read {}: {e}", path.display())))?;
     let name = path
@@ -154,7 +157,7 @@ fn spec_json(path: &Path) -> CliResult<(JobSpec, String)> {
 }
 
 pub fn submit(args: SubmitArgs) -> CliResult<()> {
-    let (job, json) = spec_json(&args.spec)?;
+    let (job, json) = spec_json(&args.spec, args.max_cells)?;
     for w in &job.warnings {
         tracing::warn!("{w}");
     }

@@ -35,6 +35,9 @@ pub struct CoordinatorArgs {
     /// work; larger: fewer round trips).
     #[arg(long, default_value_t = 8)]
     lease_cells_per_thread: usize,
+    /// Refuse submitted specs whose grid holds more cells than this.
+    #[arg(long, default_value_t = salient_grid::spec::MAX_CELLS)]
+    max_cells: usize,
     /// Write the bound address to this file once listening (useful with port 0).
     #[arg(long)]
     address_file: Option<PathBuf>,
@@ -126,6 +129,7 @@ pub fn coordinator(args: CoordinatorArgs) -> CliResult<()> {
             lease: Duration::from_secs_f64(lease),
             poll: Duration::from_millis(200),
             lease_cells_per_thread: args.lease_cells_per_thread,
+            max_cells: args.max_cells,
         },
         progress_every: Duration::from_secs_f64(progress),
     };

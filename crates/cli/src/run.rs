@@ -30,6 +30,9 @@ pub struct RunArgs {
     /// Print exactly one JSON object on stdout.
     #[arg(long)]
     json: bool,
+    /// Refuse specs whose grid holds more cells than this.
+    #[arg(long, default_value_t = spec::MAX_CELLS)]
+    max_cells: usize,
 }
 
 /// What one finished member of the sweep produced.
@@ -60,7 +63,7 @@ fn run_dir_name(index: usize, r: &RunSpec) -> String {
 }
 
 pub fn run(args: RunArgs) -> CliResult<()> {
-    let job = spec::load(&args.spec)?;
+    let job = spec::load(&args.spec, args.max_cells)?;
     let threads = match args.threads {
         Some(0) | Some(1025..) => {
             return Err(CliError::Usage(format!(

@@ -7,7 +7,8 @@ use std::path::Path;
 
 /// Reads and validates a spec file: JSON when it ends in `.json` or starts with `{` (after
 /// whitespace), else TOML. Every problem is a usage error (exit 2).
-pub fn load(path: &Path) -> CliResult<JobSpec> {
+/// Grids of more than `max_cells` cells are refused.
+pub fn load(path: &Path, max_cells: usize) -> CliResult<JobSpec> {
     let text = std::fs::read_to_string(path).map_err(|e| {
         CliError::Usage(format!("spec: cannot read {}: {e}", path.display()).replace('\n', " "))
     })?;
@@ -15,7 +16,7 @@ pub fn load(path: &Path) -> CliResult<JobSpec> {
         .file_name()
         .map(|n| n.to_string_lossy())
         .unwrap_or_default();
-    parse(&text, is_json(&name, &text)).map_err(|e| CliError::Usage(e.0))
+    parse_capped(&text, is_json(&name, &text), max_cells).map_err(|e| CliError::Usage(e.0))
 }
 
 #[cfg(test)]
@@ -45,9 +46,9 @@ mod tests {
         ] {
             let path = dir.join(file);
             std::fs::write(&path, text).unwrap();
-            assert_eq!(load(&path).unwrap(), want, "{file}");
+            assert_eq!(load(&path, MAX_CELLS).unwrap(), want, "{file}");
         }
-        let msg = usage_message(load(&dir.join("missing.toml")));
+        let msg = usage_message(load(&dir.join("missing.toml"), MAX_CELLS));
         assert!(msg.contains("missing.toml") && !msg.contains('\n'), "{msg}");
         std::fs::remove_dir_all(&dir).unwrap();
     }

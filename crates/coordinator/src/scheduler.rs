@@ -22,6 +22,8 @@ pub struct Config {
     /// Fast PSS: cells per worker thread in one lease. Small leases are judged on fresher
     /// claims (less dropped work); large ones cost fewer round trips.
     pub lease_cells_per_thread: usize,
+    /// Largest grid (cells in all) a submitted spec may ask for.
+    pub max_cells: usize,
 }
 
 impl Default for Config {
@@ -30,6 +32,7 @@ impl Default for Config {
             lease: Duration::from_secs(30),
             poll: Duration::from_millis(200),
             lease_cells_per_thread: 2 * salient_grid::executor::LANES,
+            max_cells: spec::MAX_CELLS,
         }
     }
 }
@@ -240,7 +243,8 @@ impl Scheduler {
 
     /// Validates a spec and queues it; returns the job id and the spec's warnings.
     pub fn submit(&mut self, spec_json: &str) -> Result<(u64, Vec<String>), Status> {
-        let spec = spec::parse(spec_json, true).map_err(|e| Status::invalid_argument(e.0))?;
+        let spec = spec::parse_capped(spec_json, true, self.cfg.max_cells)
+            .map_err(|e| Status::invalid_argument(e.0))?;
         let id = self
             .store
             .insert_job(&spec.name, spec_json, now_ms())

@@ -16,8 +16,8 @@ use serde::Serialize;
 use serde_json::{Map, Value};
 use std::fmt;
 
-/// Largest grid a spec may ask for.
-const MAX_CELLS: usize = 16_000_000;
+/// Largest grid a spec may ask for unless the caller sets another cap.
+pub const MAX_CELLS: usize = 16_000_000;
 /// Largest number of steps τ in one run.
 const MAX_STEPS: f64 = 1e12;
 /// Cells per axis.
@@ -187,6 +187,11 @@ pub fn is_json(file_name: &str, text: &str) -> bool {
 
 /// Parses and validates a spec's text (`json`: the JSON form, else TOML).
 pub fn parse(text: &str, json: bool) -> SpecResult<JobSpec> {
+    parse_capped(text, json, MAX_CELLS)
+}
+
+/// [`parse`] with a cap on the grid's cells in all (`--max-cells`).
+pub fn parse_capped(text: &str, json: bool, max_cells: usize) -> SpecResult<JobSpec> {
     let value = if json {
         serde_json::from_str::<Value>(text).map_err(|e| {
             usage(format!(
@@ -207,7 +212,7 @@ pub fn parse(text: &str, json: bool) -> SpecResult<JobSpec> {
         })?;
         toml_to_json(toml::Value::Table(table))
     };
-    validate(read_raw(&value)?)
+    validate(read_raw(&value)?, max_cells)
 }
 
 /// The number and trimmed text of the line holding byte offset `at`.
@@ -570,7 +575,7 @@ pub fn default_bounds(energy: f64) -> ((f64, f64), (f64, f64)) {
     ((bisect(0.0, -2.0), upper), (-p, p))
 }
 
-fn validate(raw: RawSpec) -> SpecResult<JobSpec> {
+fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
     let source = serde_json::to_value(&raw).expect("a read spec holds only finite numbers");
     let mut warnings = Vec::new();
 
@@ -595,9 +600,9 @@ fn validate(raw: RawSpec) -> SpecResult<JobSpec> {
 
     let g = &raw.grid;
     let [n_q2, n_p2] = pair_usize("grid.cells", &g.cells, [MAX_AXIS, MAX_AXIS])?;
-    if n_q2 * n_p2 > MAX_CELLS {
+    if n_q2 * n_p2 > max_cells {
         return Err(usage(format!(
-            "grid.cells must hold at most {MAX_CELLS} cells in all (got {n_q2} × {n_p2} = {})",
+            "grid.cells must hold at most {max_cells} cells in all (got {n_q2} × {n_p2} = {}; the cap is --max-cells)",
             n_q2 * n_p2
         )));
     }
