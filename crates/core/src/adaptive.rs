@@ -13,7 +13,7 @@
 
 use crate::dop853::{Dense, Dop853, StepFailure};
 use crate::hamiltonian::Hamiltonian;
-use crate::indicators::{gali, norm2, sali};
+use crate::indicators::{gali, in_band, norm2, sali};
 use crate::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Sample, Status,
 };
@@ -366,6 +366,14 @@ where
         match protocol {
             Protocol::Restart => {
                 if integ.t() < target {
+                    // Within a long interval the vectors may grow past f64's range (C1 at
+                    // τ = 1e4: e^(λτ) ≈ 1e195 per vector, squared past 1e308): renormalise
+                    // early, but only then, so ordinary runs keep the paper's protocol bit
+                    // for bit (the step control sees the vectors' scale).
+                    let y = integ.state();
+                    if (0..K).any(|k| !in_band(norm2(&y.dq[k], &y.dp[k]))) {
+                        books.ln_growth += integ.renormalise();
+                    }
                     continue;
                 }
                 n += 1;
