@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Long numerical stability tests (crates/core/tests/hard_cases.rs, the #[ignore]d ones): the
+# Long numerical stability tests (tests/tests/hard_cases_numerics.rs, the #[ignore]d ones): the
 # sticky orbit C2 to t = 1e7, R1 to t = 1e7 at δ = 1e-5 and 1e-14 (the seed paper's Fig. 8),
 # C1's Lyapunov exponent with renormalisation intervals up to τ = 5000. Each test runs on its
 # own, one thread, so the wall times printed are the test's own; every test prints what it
@@ -10,7 +10,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-cargo_test=(cargo test --release -p salient-core --test hard_cases)
+cargo_test=(cargo test --release -p salient-tests --test hard_cases_numerics)
 "${cargo_test[@]}" --no-run
 
 filter="${1:-}"

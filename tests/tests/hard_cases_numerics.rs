@@ -9,12 +9,13 @@
 //! 5. Large renormalisation intervals τ for the adaptive methods: finite deviation vectors
 //!    and the right Lyapunov exponent — and where the `restart` protocol runs out of range.
 //!
-//! The quick tests run with `cargo test -p salient-core --test hard_cases`; the long ones are
+//! The quick tests run with `cargo test -p salient-tests --test hard_cases_numerics`; the long ones are
 //! `#[ignore]`d and run by `scripts/stability.sh`, which prints what they measured. Every
 //! test prints its measurements (`--nocapture` shows them).
 
 #![allow(clippy::excessive_precision)]
 
+#[path = "../../crates/core/tests/common/mod.rs"]
 mod common;
 
 use common::{c1, ic, r1, ENERGY};
