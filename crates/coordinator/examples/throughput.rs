@@ -2,7 +2,10 @@
 //! scheduler (validation, SQLite commit with synchronous=FULL, ledger) and CPU per outcome,
 //! without networking or integration.
 //!
-//! cargo run --release -p salient-coordinator --example throughput -- [full|fast-pss] [visited]
+//! cargo run --release -p salient-coordinator --example throughput -- [full|fast-pss] [visited] [group]
+//!
+//! `group` polls share one store transaction, as the event loop groups the events that queued
+//! up while it worked (1: a transaction per poll).
 
 use salient_coordinator::scheduler::{Config, Scheduler};
 use salient_grid::spec;
@@ -27,6 +30,7 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     let mode = args.get(1).map_or("full", |s| s.as_str()).to_string();
     let visited: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(0);
+    let group: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(8).max(1);
     let json = format!(
         r#"{{"name": "bench", "system": {{"kind": "henon-heiles", "energy": 0.125}},
             "grid": {{"cells": [400, 400], "tile": [20, 20], "mode": "{mode}"}},
@@ -75,6 +79,9 @@ fn main() {
     let (mut outcomes, mut reports) = (0u64, 0u64);
     let mut k = 0;
     while !s.is_finished(job).unwrap() {
+        if k % group == 0 {
+            s.begin_group().unwrap();
+        }
         let w = k % workers.len();
         k += 1;
         let report = held[w].take().map(|l| {
@@ -97,10 +104,17 @@ fn main() {
             })
             .unwrap();
         held[w] = reply.leases.into_iter().next();
+        if k % group == 0 {
+            s.commit_group().unwrap();
+        }
+    }
+    if k % group != 0 {
+        s.commit_group().unwrap();
     }
     let (wall, cpu) = (t0.elapsed().as_secs_f64(), cpu_seconds() - c0);
     println!(
-        "mode {mode}, {visited} visited per outcome: {outcomes} outcomes in {reports} reports, \
+        "mode {mode}, {visited} visited per outcome, {group} polls per transaction: \
+         {outcomes} outcomes in {reports} reports, \
          {wall:.2} s wall, {:.0} outcomes/s, {:.1} µs CPU per outcome, {:.2} ms per report",
         outcomes as f64 / wall,
         1e6 * cpu / outcomes as f64,

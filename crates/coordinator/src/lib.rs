@@ -55,61 +55,116 @@ pub struct Options {
 /// lists.
 const RESULTS_BATCH: usize = 256;
 
-/// The loop: owns the scheduler, answers events in arrival order.
+/// Events handled in one store transaction at most.
+const GROUP: usize = 64;
+
+type Watchers = Vec<(u64, mpsc::Sender<Result<v1::JobStatus, Status>>)>;
+
+/// An answer held until the group's transaction is committed.
+type Deferred = Box<dyn FnOnce() + Send>;
+
+fn defer<T: Send + 'static>(tx: Reply<T>, r: Result<T, Status>) -> Deferred {
+    Box::new(move || drop(tx.send(r)))
+}
+
+/// The loop: owns the scheduler, answers events in arrival order. Events that queued up while
+/// it worked are handled together in one store transaction (group commit: one fsync for a
+/// burst of reports and leases), and their answers go out only after it is committed.
 fn event_loop(mut s: Scheduler, mut rx: mpsc::Receiver<Event>, progress_every: Duration) {
-    let mut watchers: Vec<(u64, mpsc::Sender<Result<v1::JobStatus, Status>>)> = Vec::new();
+    let mut watchers: Watchers = Vec::new();
     let mut last_progress = Instant::now();
-    while let Some(ev) = rx.blocking_recv() {
-        match ev {
-            Event::Submit(spec, tx) => drop(tx.send(s.submit(&spec))),
-            Event::Register(r, tx) => drop(tx.send(s.register(&r))),
-            Event::Poll(r, tx) => drop(tx.send(s.poll(&r))),
-            Event::Renew(r, tx) => drop(tx.send(s.renew_only(&r))),
-            Event::Report(r, tx) => drop(tx.send(s.report(&r))),
-            Event::Deregister(r, tx) => drop(tx.send(s.deregister(&r))),
-            Event::Status(j, tx) => drop(tx.send(s.status(j))),
-            Event::Results(j, tx) => drop(tx.send(s.results(j, RESULTS_BATCH))),
-            Event::Cancel(j, tx) => drop(tx.send(s.cancel(j))),
-            Event::Watch(j, tx) => match s.status(Some(j)) {
-                Ok(st) => {
-                    let finished = st.jobs.first().is_some_and(|j| is_terminal(&j.state));
-                    if let Some(first) = st.jobs.into_iter().next() {
-                        let _ = tx.try_send(Ok(first));
-                    }
-                    if !finished {
-                        watchers.push((j, tx));
-                    }
-                }
-                Err(e) => drop(tx.try_send(Err(e))),
-            },
-            Event::Tick => {
-                s.tick();
-                if last_progress.elapsed() >= progress_every {
-                    last_progress = Instant::now();
-                    s.log_progress();
-                }
-                watchers.retain(|(job, tx)| {
-                    if tx.is_closed() {
-                        return false;
-                    }
-                    match s.status(Some(*job)) {
-                        Ok(st) => {
-                            let Some(js) = st.jobs.into_iter().next() else {
-                                return false;
-                            };
-                            let finished = is_terminal(&js.state);
-                            // A slow watcher misses intermediate states, never the last one.
-                            let sent = tx.try_send(Ok(js)).is_ok();
-                            !(finished && sent)
-                        }
-                        Err(e) => {
-                            let _ = tx.try_send(Err(e));
-                            false
-                        }
-                    }
-                });
-                s.retire_finished();
+    while let Some(first) = rx.blocking_recv() {
+        let mut batch = vec![first];
+        while batch.len() < GROUP {
+            match rx.try_recv() {
+                Ok(ev) => batch.push(ev),
+                Err(_) => break,
             }
+        }
+        if let Err(e) = s.begin_group() {
+            tracing::error!(error = %e, "the store cannot start a transaction; stopping");
+            std::process::exit(1);
+        }
+        let mut answers: Vec<Deferred> = Vec::with_capacity(batch.len());
+        for ev in batch {
+            handle(
+                &mut s,
+                ev,
+                &mut watchers,
+                &mut answers,
+                &mut last_progress,
+                progress_every,
+            );
+        }
+        if let Err(e) = s.commit_group() {
+            // The in-memory state is ahead of the store: stop without acknowledging; a
+            // restart resumes from what was committed.
+            tracing::error!(error = %e, "the store cannot commit; stopping");
+            std::process::exit(1);
+        }
+        for answer in answers {
+            answer();
+        }
+    }
+}
+
+fn handle(
+    s: &mut Scheduler,
+    ev: Event,
+    watchers: &mut Watchers,
+    answers: &mut Vec<Deferred>,
+    last_progress: &mut Instant,
+    progress_every: Duration,
+) {
+    match ev {
+        Event::Submit(spec, tx) => answers.push(defer(tx, s.submit(&spec))),
+        Event::Register(r, tx) => answers.push(defer(tx, s.register(&r))),
+        Event::Poll(r, tx) => answers.push(defer(tx, s.poll(&r))),
+        Event::Renew(r, tx) => answers.push(defer(tx, s.renew_only(&r))),
+        Event::Report(r, tx) => answers.push(defer(tx, s.report(&r))),
+        Event::Deregister(r, tx) => answers.push(defer(tx, s.deregister(&r))),
+        Event::Status(j, tx) => answers.push(defer(tx, s.status(j))),
+        Event::Results(j, tx) => answers.push(defer(tx, s.results(j, RESULTS_BATCH))),
+        Event::Cancel(j, tx) => answers.push(defer(tx, s.cancel(j))),
+        Event::Watch(j, tx) => match s.status(Some(j)) {
+            Ok(st) => {
+                let finished = st.jobs.first().is_some_and(|j| is_terminal(&j.state));
+                if let Some(first) = st.jobs.into_iter().next() {
+                    let _ = tx.try_send(Ok(first));
+                }
+                if !finished {
+                    watchers.push((j, tx));
+                }
+            }
+            Err(e) => drop(tx.try_send(Err(e))),
+        },
+        Event::Tick => {
+            s.tick();
+            if last_progress.elapsed() >= progress_every {
+                *last_progress = Instant::now();
+                s.log_progress();
+            }
+            watchers.retain(|(job, tx)| {
+                if tx.is_closed() {
+                    return false;
+                }
+                match s.status(Some(*job)) {
+                    Ok(st) => {
+                        let Some(js) = st.jobs.into_iter().next() else {
+                            return false;
+                        };
+                        let finished = is_terminal(&js.state);
+                        // A slow watcher misses intermediate states, never the last one.
+                        let sent = tx.try_send(Ok(js)).is_ok();
+                        !(finished && sent)
+                    }
+                    Err(e) => {
+                        let _ = tx.try_send(Err(e));
+                        false
+                    }
+                }
+            });
+            s.retire_finished();
         }
     }
 }

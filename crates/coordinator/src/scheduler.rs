@@ -957,6 +957,16 @@ impl Scheduler {
         }
     }
 
+    /// Starts a group of calls whose store writes share one transaction (one fsync).
+    pub fn begin_group(&mut self) -> Result<(), String> {
+        self.store.begin_group().map_err(|e| e.to_string())
+    }
+
+    /// Commits the group; only then may its calls' answers go out.
+    pub fn commit_group(&mut self) -> Result<(), String> {
+        self.store.commit_group().map_err(|e| e.to_string())
+    }
+
     /// Forgets finished jobs' in-memory state (the store keeps them).
     pub fn retire_finished(&mut self) {
         self.jobs.retain(|_, j| !j.state.is_terminal());

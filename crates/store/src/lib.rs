@@ -323,6 +323,20 @@ impl Store {
         raws.into_iter().map(RawJob::into_row).collect()
     }
 
+    /// Starts a group: every call until [`Store::commit_group`] joins one transaction, so a
+    /// burst of reports and leases costs one fsync. The caller must not acknowledge anything
+    /// done in the group before `commit_group` returns.
+    pub fn begin_group(&mut self) -> Result<()> {
+        self.conn.execute_batch("BEGIN IMMEDIATE")?;
+        Ok(())
+    }
+
+    /// Commits the group started by [`Store::begin_group`].
+    pub fn commit_group(&mut self) -> Result<()> {
+        self.conn.execute_batch("COMMIT")?;
+        Ok(())
+    }
+
     /// In ONE transaction: a row for the report (job, run, tile, attempt, worker, cpu_ns, number
     /// of new outcomes) and each outcome with INSERT OR IGNORE on (job, run, cell) so a cell
     /// keeps its first outcome. Returns how many outcomes were new.
@@ -332,7 +346,9 @@ impl Store {
     /// change nothing already stored. A report for an unknown job fails its foreign key and
     /// stores nothing at all.
     pub fn commit_report(&mut self, report: &Report<'_>) -> Result<usize> {
-        let tx = self.conn.transaction()?;
+        // A savepoint, so that inside a group (`begin_group`) it nests, and alone it is its own
+        // transaction.
+        let tx = self.conn.savepoint()?;
         let new = {
             let job = id_to_sql(report.job);
             tx.prepare_cached(
@@ -440,7 +456,7 @@ impl Store {
     pub fn add_counter(&mut self, job: u64, name: &str, delta: u64) -> Result<()> {
         // Read-modify-write in Rust rather than `value + ?` in SQL: SQLite turns an overflowing
         // integer sum into a REAL, whereas this saturates exactly.
-        let tx = self.conn.transaction()?;
+        let tx = self.conn.savepoint()?;
         let job = id_to_sql(job);
         let current: i64 = tx
             .prepare_cached("SELECT value FROM counters WHERE job = ?1 AND name = ?2")?

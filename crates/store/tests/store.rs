@@ -534,3 +534,39 @@ fn errors_display_and_chain() {
     assert!(matches!(sqlite, StoreError::Sqlite(_)));
     assert!(std::error::Error::source(&sqlite).is_some());
 }
+
+#[test]
+fn a_group_commits_everything_at_once_or_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("group.db");
+    let job = {
+        let mut s = Store::open(&path).unwrap();
+        let job = s.insert_job("g", "{}", 1).unwrap();
+        // A committed group: both reports, the attempt and the counter are there after reopen.
+        s.begin_group().unwrap();
+        assert_eq!(
+            s.commit_report(&report(job, 0, 0, 1, &[(1, b"a"), (2, b"b")]))
+                .unwrap(),
+            2
+        );
+        // Nested report transactions still dedupe within the group.
+        assert_eq!(
+            s.commit_report(&report(job, 0, 0, 1, &[(2, b"x"), (3, b"c")]))
+                .unwrap(),
+            1
+        );
+        s.record_attempt(job, 0, 0, 1, "w1").unwrap();
+        s.add_counter(job, "stale_reports", 2).unwrap();
+        s.commit_group().unwrap();
+        // An open group when the process dies: nothing of it survives.
+        s.begin_group().unwrap();
+        s.commit_report(&report(job, 0, 1, 1, &[(9, b"z")]))
+            .unwrap();
+        s.add_counter(job, "stale_reports", 5).unwrap();
+        job
+    };
+    let s = Store::open(&path).unwrap();
+    assert_eq!(cells(&s.outcomes(job, 0).unwrap()), vec![1, 2, 3]);
+    assert_eq!(s.attempts(job).unwrap(), vec![(0, 0, 1)]);
+    assert_eq!(s.counters(job).unwrap()["stale_reports"], 2);
+}
