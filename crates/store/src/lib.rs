@@ -16,7 +16,8 @@
 //! Durability: the database runs in WAL mode with `synchronous=FULL`, and every mutating call is
 //! one transaction that is committed before the call returns. A caller may therefore
 //! acknowledge an RPC as soon as the call returns `Ok`: the change survives a crash or power
-//! loss from then on.
+//! loss from then on. Inside a group ([`Store::begin_group`] … [`Store::commit_group`]) the
+//! calls share one transaction and nothing is durable before `commit_group` returns.
 //!
 //! Integers: SQLite stores signed 64-bit integers only. `u64` values (job ids, `cpu_ns`,
 //! counters) are stored as `i64`. Job ids come from AUTOINCREMENT and always lie in
