@@ -2,7 +2,7 @@
 //! which `scripts/test.sh` builds before `cargo test` (cargo does not build another package's
 //! binary for a test).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 /// Path of the `salient` binary next to this test executable's profile directory.
@@ -44,4 +44,23 @@ pub fn json_stdout(out: &Output) -> serde_json::Value {
     );
     serde_json::from_str(text.trim())
         .unwrap_or_else(|e| panic!("stdout is not one JSON object ({e}): {text}"))
+}
+
+/// Writes a spec file `name` with `text` into `dir` and returns its path as a string.
+pub fn write_spec(dir: &Path, name: &str, text: &str) -> String {
+    let p = dir.join(name);
+    std::fs::write(&p, text).expect("write the spec");
+    p.to_str().expect("a UTF-8 path").to_string()
+}
+
+/// The run folders of an output folder, sorted (`01-…`, `02-…`).
+pub fn run_dirs(out: &Path) -> Vec<PathBuf> {
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(out)
+        .expect("the output folder")
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.is_dir())
+        .collect();
+    dirs.sort();
+    dirs
 }

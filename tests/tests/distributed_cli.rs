@@ -2,8 +2,8 @@
 //! and the client commands. The acceptance test of the mode: `salient results` writes files
 //! byte-identical to `salient run`'s, also across a coordinator killed and restarted mid-job.
 
-use salient_tests::{json_stdout, salient, salient_path};
-use std::path::{Path, PathBuf};
+use salient_tests::{json_stdout, run_dirs, salient, salient_path, write_spec};
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -97,17 +97,6 @@ fn client(args: &[&str], url: &str) -> std::process::Output {
         .expect("run salient")
 }
 
-fn run_dirs(out: &Path) -> Vec<PathBuf> {
-    let mut dirs: Vec<_> = std::fs::read_dir(out)
-        .unwrap()
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.is_dir())
-        .collect();
-    dirs.sort();
-    dirs
-}
-
 /// Every per-cell file of every run is byte-identical.
 fn assert_same_outputs(a: &Path, b: &Path) {
     let (da, db) = (run_dirs(a), run_dirs(b));
@@ -145,18 +134,13 @@ fn field(line: &str, key: &str) -> u64 {
         .unwrap()
 }
 
-fn write_spec(dir: &Path, text: &str) -> String {
-    let p = dir.join("spec.toml");
-    std::fs::write(&p, text).unwrap();
-    p.to_str().unwrap().to_string()
-}
-
 #[test]
 fn distributed_results_equal_salient_run_byte_for_byte() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let spec = write_spec(
         d,
+        "spec.toml",
         r#"
 name = "dist"
 [system]
@@ -243,6 +227,7 @@ delta = [1e-6]
     // A long job is cancelled: its leases are revoked and it has no results.
     let long = write_spec(
         d,
+        "long.toml",
         &std::fs::read_to_string(&spec)
             .unwrap()
             .replace("t_final = [1e3]", "t_final = [1e8]"),
@@ -263,7 +248,7 @@ delta = [1e-6]
     let out = client(&["watch", "2"], &url);
     assert_eq!(out.status.code(), Some(1));
     // A bad spec never reaches the coordinator.
-    let bad = write_spec(d, "[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [0, 4]\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [10.0]\n");
+    let bad = write_spec(d, "bad.toml", "[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [0, 4]\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [10.0]\n");
     let out = client(&["submit", &bad], &url);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("grid.cells"));
@@ -275,6 +260,7 @@ fn a_coordinator_killed_mid_job_resumes_and_workers_drain_on_sigterm() {
     let d = dir.path();
     let spec = write_spec(
         d,
+        "spec.toml",
         r#"
 name = "restart"
 [system]
@@ -403,8 +389,7 @@ fn fixture(name: &str) -> String {
 fn tls_with_a_private_ca_and_the_health_service() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let spec = write_spec(
-        d,
+    let spec = write_spec(d, "spec.toml",
         "name = \"tls\"\n[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [16, 16]\ntile = [8, 8]\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [500.0]\n",
     );
     let (cert, key, ca) = (
@@ -492,8 +477,7 @@ fn tls_with_a_private_ca_and_the_health_service() {
 fn a_worker_killed_mid_run_has_its_tile_leased_again() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let spec = write_spec(
-        d,
+    let spec = write_spec(d, "spec.toml",
         "name = \"kill\"\n[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [30, 30]\ntile = [15, 15]\nmode = \"full\"\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [1e5]\n",
     );
     let (_c, url) = coordinator_with(

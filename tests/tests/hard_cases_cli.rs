@@ -2,25 +2,8 @@
 //! splitting steps beyond their stability limit, and determinism of every per-cell output.
 //! Each ends in a correct classification or an explicit status, never in NaN percentages.
 
-use salient_tests::{json_stdout, salient};
-use std::path::{Path, PathBuf};
-
-fn write_spec(dir: &Path, name: &str, text: &str) -> String {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p.to_str().unwrap().to_string()
-}
-
-fn run_dirs(out: &Path) -> Vec<PathBuf> {
-    let mut dirs: Vec<_> = std::fs::read_dir(out)
-        .unwrap()
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.is_dir())
-        .collect();
-    dirs.sort();
-    dirs
-}
+use salient_tests::{json_stdout, run_dirs, salient, write_spec};
+use std::path::Path;
 
 fn run(spec: &str, out: &Path, extra: &[&str]) -> (serde_json::Value, String) {
     let mut args = vec!["run", spec, "--out", out.to_str().unwrap(), "--json"];

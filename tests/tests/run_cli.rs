@@ -1,8 +1,7 @@
 //! `salient run` end to end: determinism across threads, the output contract, full mode's
 //! checkpoints, and bad specs.
 
-use salient_tests::{json_stdout, salient};
-use std::path::Path;
+use salient_tests::{json_stdout, run_dirs, salient, write_spec};
 
 const SMALL: &str = r#"
 name = "small"
@@ -18,23 +17,6 @@ method = ["tm-sbab2c"]
 tau = [0.5]
 t_final = [2e3]
 "#;
-
-fn write_spec(dir: &Path, name: &str, text: &str) -> String {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p.to_str().unwrap().to_string()
-}
-
-fn run_dir(out: &Path) -> std::path::PathBuf {
-    let mut dirs: Vec<_> = std::fs::read_dir(out)
-        .unwrap()
-        .flatten()
-        .filter(|e| e.path().is_dir())
-        .map(|e| e.path())
-        .collect();
-    dirs.sort();
-    dirs.remove(0)
-}
 
 #[test]
 fn cells_csv_is_byte_identical_for_one_and_two_threads() {
@@ -53,7 +35,7 @@ fn cells_csv_is_byte_identical_for_one_and_two_threads() {
             "--json",
         ]);
         json_stdout(&o);
-        csv.push(std::fs::read(run_dir(&out).join("cells.csv")).unwrap());
+        csv.push(std::fs::read(run_dirs(&out).remove(0).join("cells.csv")).unwrap());
     }
     assert!(csv[0].len() > 1000);
     assert_eq!(csv[0], csv[1]);
@@ -98,7 +80,7 @@ fn run_writes_the_contract_and_never_lists_incompatible_cells() {
         + p["sticky"].as_f64().unwrap()
         + p["chaotic"].as_f64().unwrap();
     assert!((total - 100.0).abs() < 1e-9);
-    let run = run_dir(&out);
+    let run = run_dirs(&out).remove(0);
     for f in ["cells.csv", "class.npy", "sali.npy", "map.png", "run.json"] {
         assert!(run.join(f).exists(), "{f}");
     }
@@ -150,9 +132,10 @@ fn full_mode_reports_checkpoints_and_plots_percent_against_t() {
         v["runs"][0]["orbits_integrated"],
         v["runs"][0]["compatible"]
     );
-    let run: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(run_dir(&out).join("run.json")).unwrap())
-            .unwrap();
+    let run: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(run_dirs(&out).remove(0).join("run.json")).unwrap(),
+    )
+    .unwrap();
     let cps = run["checkpoints"].as_array().unwrap();
     assert!(cps.len() >= 8);
     // Classes only move towards chaos as t grows: the chaotic share never falls.
