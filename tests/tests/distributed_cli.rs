@@ -50,22 +50,19 @@ fn coordinator_with(dir: &Path, listen: &str, log: &str, extra: &[&str]) -> (Pro
     let addr_file = dir.join(format!("{log}.addr"));
     let _ = std::fs::remove_file(&addr_file);
     let db = dir.join("coordinator.db");
-    let p = spawn(
-        &[
-            "coordinator",
-            "--listen",
-            listen,
-            "--db",
-            db.to_str().unwrap(),
-            "--address-file",
-            addr_file.to_str().unwrap(),
-        ]
-        .iter()
-        .chain(extra)
-        .copied()
-        .collect::<Vec<_>>(),
-        &dir.join(log),
-    );
+    let mut args = vec![
+        "coordinator",
+        "--listen",
+        listen,
+        "--address-file",
+        addr_file.to_str().unwrap(),
+    ];
+    // The default store unless `extra` names one.
+    if !extra.contains(&"--db") {
+        args.extend(["--db", db.to_str().unwrap()]);
+    }
+    args.extend_from_slice(extra);
+    let p = spawn(&args, &dir.join(log));
     wait_for("the coordinator to listen", Duration::from_secs(30), || {
         std::fs::read_to_string(&addr_file).is_ok_and(|a| a.ends_with('\n'))
     });
@@ -500,7 +497,7 @@ fn a_worker_killed_mid_run_has_its_tile_leased_again() {
     wait_for("worker 1 to hold a lease", Duration::from_secs(30), || {
         std::fs::read_to_string(d.join("coordinator.log"))
             .unwrap()
-            .contains("worker=\"w1\"")
+            .contains("worker=\"w1-")
     });
     w1.0.kill().unwrap();
     w1.0.wait().unwrap();
@@ -525,7 +522,7 @@ fn a_worker_killed_mid_run_has_its_tile_leased_again() {
     let again = format!("tile={tile} attempt={}", attempt + 1);
     assert!(
         log.lines()
-            .any(|l| l.contains(" leased ") && l.contains(&again) && l.contains("worker=\"w2\"")),
+            .any(|l| l.contains(" leased ") && l.contains(&again) && l.contains("worker=\"w2-")),
         "tile {tile} was not leased again to w2"
     );
     let emb = d.join("emb");
@@ -577,4 +574,75 @@ fn oversize_messages_are_refused_and_change_nothing() {
     });
     assert_eq!(code, tonic::Code::OutOfRange);
     assert_eq!(jobs, 0);
+}
+
+#[test]
+fn a_worker_whose_coordinator_comes_back_on_another_store_forgets_the_old_jobs() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let spec_text = |t_final: &str| {
+        format!(
+            "name = \"other\"\n[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [30, 30]\ntile = [10, 10]\nmode = \"full\"\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [{t_final}]\n"
+        )
+    };
+    let first = write_spec(d, "first.toml", &spec_text("1e5"));
+    let second = write_spec(d, "second.toml", &spec_text("3e3"));
+    let db1 = d.join("one.db");
+    let (mut c, url) = coordinator_with(
+        d,
+        "127.0.0.1:0",
+        "coordinator-1.log",
+        &["--db", db1.to_str().unwrap()],
+    );
+    let _w = worker(d, &url, 1);
+    let job = json_stdout(&client(&["submit", &first, "--json"], &url))["job"]
+        .as_u64()
+        .unwrap();
+    wait_for(
+        "the worker to hold a lease",
+        Duration::from_secs(30),
+        || {
+            std::fs::read_to_string(d.join("coordinator-1.log"))
+                .unwrap()
+                .contains(" leased ")
+        },
+    );
+    c.0.kill().unwrap();
+    c.0.wait().unwrap();
+    // Same address, a new store: job ids start again at 1, with another spec.
+    let listen = url.trim_start_matches("http://").to_string();
+    let db2 = d.join("two.db");
+    let (_c2, _) = coordinator_with(
+        d,
+        &listen,
+        "coordinator-2.log",
+        &["--db", db2.to_str().unwrap()],
+    );
+    let job2 = json_stdout(&client(&["submit", &second, "--json"], &url))["job"]
+        .as_u64()
+        .unwrap();
+    assert_eq!(job, job2);
+    let dist = d.join("dist");
+    json_stdout(&client(
+        &[
+            "results",
+            &job2.to_string(),
+            "--wait",
+            "--json",
+            "--out",
+            dist.to_str().unwrap(),
+        ],
+        &url,
+    ));
+    let emb = d.join("emb");
+    json_stdout(&salient(&[
+        "run",
+        &second,
+        "--json",
+        "--out",
+        emb.to_str().unwrap(),
+    ]));
+    assert_same_outputs(&emb, &dist);
+    let wlog = std::fs::read_to_string(d.join("worker-1.log")).unwrap();
+    assert!(wlog.contains("another store"), "{wlog}");
 }

@@ -406,8 +406,9 @@ async fn fetch_and_write(client: &mut Client, job: u64, out: &Path, json: bool) 
         .map_err(|e| rpc_error("results", e))?
         .into_inner();
     let bad = |m: String| CliError::Runtime(format!("results of job {job}: {m}"));
-    let mut spec: Option<JobSpec> = None;
-    let mut runs: Vec<(v1::RunHeader, Ledger)> = Vec::new();
+    let mut spec: Option<(JobSpec, salient_grid::Grid)> = None;
+    // Per run: its header, the ledger being rebuilt, and the checkpoint count outcomes carry.
+    let mut runs: Vec<(v1::RunHeader, Ledger, usize)> = Vec::new();
     while let Some(chunk) = stream
         .message()
         .await
@@ -415,38 +416,40 @@ async fn fetch_and_write(client: &mut Client, job: u64, out: &Path, json: bool) 
     {
         match chunk.part {
             Some(Part::Header(h)) => {
-                spec = Some(
-                    spec::parse(&h.spec_json, true)
-                        .map_err(|e| bad(format!("the stored spec: {e}")))?,
-                )
+                let s = spec::parse(&h.spec_json, true)
+                    .map_err(|e| bad(format!("the stored spec: {e}")))?;
+                let grid = s.grid();
+                spec = Some((s, grid));
             }
             Some(Part::Run(h)) => {
-                let s = spec
+                let (s, grid) = spec
                     .as_ref()
                     .ok_or_else(|| bad("run before header".into()))?;
-                runs.push((h, Ledger::new(&s.grid(), s.grid.mode)));
+                if h.run as usize >= s.runs.len() {
+                    return Err(bad(format!("run {} is not in the spec", h.run)));
+                }
+                let checkpoints = s.cell_run(h.run as usize).checkpoint_steps().len();
+                runs.push((h, Ledger::new(grid, s.grid.mode), checkpoints));
             }
             Some(Part::Outcomes(batch)) => {
-                let s = spec
+                let (_, grid) = spec
                     .as_ref()
                     .ok_or_else(|| bad("outcomes before header".into()))?;
-                let (_, ledger) = runs
+                let (_, ledger, checkpoints) = runs
                     .iter_mut()
-                    .find(|(h, _)| h.run == batch.run)
+                    .find(|(h, _, _)| h.run == batch.run)
                     .ok_or_else(|| bad(format!("outcomes of unknown run {}", batch.run)))?;
-                let grid = s.grid();
-                let checkpoints = s.cell_run(batch.run as usize).checkpoint_steps().len();
                 for o in &batch.outcomes {
-                    ledger.offer(outcome_from_wire(o, &grid, checkpoints).map_err(bad)?);
+                    ledger.offer(outcome_from_wire(o, grid, *checkpoints).map_err(bad)?);
                 }
             }
             None => return Err(bad("an empty message".into())),
         }
     }
-    let job_spec = spec.ok_or_else(|| bad("no header".into()))?;
+    let (job_spec, grid) = spec.ok_or_else(|| bad("no header".into()))?;
     std::fs::create_dir_all(out).map_err(|e| runtime(&format!("creating {}", out.display()), e))?;
     let mut results = Vec::new();
-    for (h, mut ledger) in runs {
+    for (h, mut ledger, _) in runs {
         if !ledger.done() {
             return Err(bad(format!("run {} is incomplete", h.run)));
         }
@@ -456,7 +459,7 @@ async fn fetch_and_write(client: &mut Client, job: u64, out: &Path, json: bool) 
         let r = RunResult::new(
             &job_spec,
             h.run as usize,
-            job_spec.grid(),
+            grid.clone(),
             ledger,
             h.cpu_s,
             h.wall_s,

@@ -324,7 +324,15 @@ pub async fn serve(
     let progress_every = opts.progress_every;
     let loop_thread = std::thread::Builder::new()
         .name("scheduler".into())
-        .spawn(move || event_loop(scheduler, rx, progress_every))
+        .spawn(move || {
+            // A panic here would leave every RPC answering "shutting down" forever: stop the
+            // process instead, so a supervisor restarts it from the store.
+            let run = std::panic::AssertUnwindSafe(|| event_loop(scheduler, rx, progress_every));
+            if std::panic::catch_unwind(run).is_err() {
+                tracing::error!("the scheduler loop panicked; stopping");
+                std::process::exit(1);
+            }
+        })
         .map_err(|e| format!("starting the scheduler thread: {e}"))?;
     let ticker = {
         let tx = tx.clone();

@@ -65,6 +65,9 @@ struct Tile {
 struct Run {
     grid: Grid,
     ledger: Ledger,
+    /// Cells whose own outcome is in the store (the ledger forgets a dropped one, and a resent
+    /// report must still change nothing).
+    stored: Vec<bool>,
     checkpoints: usize,
     tiles: Vec<Tile>,
     cpu_ns: u64,
@@ -124,6 +127,7 @@ impl Run {
         let cell_run = spec.cell_run(index);
         Run {
             ledger: Ledger::new(&grid, spec.grid.mode),
+            stored: vec![false; grid.cells()],
             checkpoints: cell_run.checkpoint_steps().len(),
             tiles: (0..grid.tile_count()).map(|_| Tile::default()).collect(),
             grid,
@@ -156,22 +160,31 @@ impl Run {
 /// Every job, worker and lease the coordinator knows, with the store behind it.
 pub struct Scheduler {
     store: Store,
+    instance: String,
     cfg: Config,
     jobs: BTreeMap<u64, Job>,
     workers: HashMap<String, WorkerInfo>,
     next_worker: u64,
+    /// Distinguishes this process's worker ids from a previous coordinator's on the same store:
+    /// a worker still holding an old id must get NOT_FOUND, never another worker's identity.
+    epoch: u64,
 }
 
 impl Scheduler {
     /// Opens the scheduler on a store, resuming every unfinished job from its committed
     /// outcomes (nothing committed is integrated again).
     pub fn new(store: Store, cfg: Config) -> Result<Scheduler, String> {
+        let instance = store.instance_id().map_err(|e| e.to_string())?;
         let mut s = Scheduler {
+            instance,
             store,
             cfg,
             jobs: BTreeMap::new(),
             workers: HashMap::new(),
             next_worker: 1,
+            epoch: SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos() as u64),
         };
         let rows = s.store.unfinished_jobs().map_err(|e| e.to_string())?;
         for row in rows {
@@ -183,6 +196,8 @@ impl Scheduler {
                 "resumed"
             );
             s.jobs.insert(row.id, job);
+            // A run whose last outcome was committed but not marked done before a stop.
+            s.finish_runs(row.id).map_err(|e| e.message().to_string())?;
         }
         Ok(s)
     }
@@ -208,6 +223,7 @@ impl Scheduler {
                     .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
                 let o = outcome_from_wire(&wire, &run.grid, run.checkpoints)
                     .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
+                run.stored[o.cell as usize] = true;
                 run.ledger.offer(o);
             }
             run.cpu_ns = self
@@ -282,7 +298,7 @@ impl Scheduler {
                 req.threads
             )));
         }
-        let id = format!("w{}", self.next_worker);
+        let id = format!("w{}-{:x}", self.next_worker, self.epoch & 0xff_ffff_ffff);
         self.next_worker += 1;
         let name: String = req.name.chars().take(128).collect();
         tracing::info!(worker = %id, name = %name, threads = req.threads, "worker registered");
@@ -299,6 +315,7 @@ impl Scheduler {
             worker_id: id,
             lease_ms: self.cfg.lease.as_millis() as u32,
             poll_ms: self.cfg.poll.as_millis() as u32,
+            coordinator_id: self.instance.clone(),
         })
     }
 
@@ -385,8 +402,11 @@ impl Scheduler {
                 if lease.attempt < tile.attempt {
                     job.stale_reports += 1;
                     run.extra_dropped_orbits += r.outcomes.len() as u64;
-                    let steps: u64 = r.outcomes.iter().map(|o| o.steps).sum();
-                    run.extra_dropped_steps += steps;
+                    let steps = r
+                        .outcomes
+                        .iter()
+                        .fold(0u64, |a, o| a.saturating_add(o.steps));
+                    run.extra_dropped_steps = run.extra_dropped_steps.saturating_add(steps);
                     self.store
                         .add_counter(job.id, "stale_reports", 1)
                         .map_err(store_err)?;
@@ -412,7 +432,7 @@ impl Scheduler {
             let fresh: Vec<(u32, Vec<u8>, salient_grid::Outcome)> = r
                 .outcomes
                 .iter()
-                .filter(|o| !run.ledger.has_outcome(o.cell) && seen.insert(o.cell))
+                .filter(|o| !run.stored[o.cell as usize] && seen.insert(o.cell))
                 .map(|o| {
                     let checked =
                         outcome_from_wire(o, &run.grid, run.checkpoints).expect("validated");
@@ -433,8 +453,9 @@ impl Scheduler {
                         outcomes: &blobs,
                     })
                     .map_err(store_err)?;
-                run.cpu_ns += r.cpu_ns;
+                run.cpu_ns = run.cpu_ns.saturating_add(r.cpu_ns);
                 for (_, _, o) in fresh {
+                    run.stored[o.cell as usize] = true;
                     run.ledger.offer(o);
                 }
             }
@@ -442,8 +463,10 @@ impl Scheduler {
                 tile.lease = None;
                 // Counted once: a repeat of the finishing report finds the lease gone.
                 if r.abandoned_orbits > 0 {
-                    run.extra_dropped_orbits += r.abandoned_orbits;
-                    run.extra_dropped_steps += r.abandoned_steps;
+                    run.extra_dropped_orbits =
+                        run.extra_dropped_orbits.saturating_add(r.abandoned_orbits);
+                    run.extra_dropped_steps =
+                        run.extra_dropped_steps.saturating_add(r.abandoned_steps);
                     self.store
                         .add_counter(
                             job.id,
@@ -478,11 +501,12 @@ impl Scheduler {
             if run.done || !run.ledger.done() {
                 continue;
             }
-            run.wall_s = run.elapsed();
-            run.done = true;
+            let wall_s = run.elapsed();
             self.store
-                .add_counter(id, &counter(index, "wall_ms"), (run.wall_s * 1e3) as u64)
+                .add_counter(id, &counter(index, "wall_ms"), (wall_s * 1e3) as u64)
                 .map_err(store_err)?;
+            run.wall_s = wall_s;
+            run.done = true;
             // Speculative leases of a finished run are no longer needed.
             for (t, tile) in run.tiles.iter_mut().enumerate() {
                 if let Some(l) = tile.lease.take() {
@@ -624,6 +648,42 @@ impl Scheduler {
                     }
                 }
                 _ => revoked.push(*h),
+            }
+        }
+        // A worker names every lease it holds: one it does not name never reached it (a lost
+        // reply), so the tile goes back now instead of after the lease period.
+        let named: HashSet<TileKey> = held.iter().map(|h| h.key()).collect();
+        let lost: Vec<TileKey> = self
+            .workers
+            .get(worker)
+            .map(|w| {
+                w.leases
+                    .iter()
+                    .filter(|k| !named.contains(k))
+                    .copied()
+                    .collect()
+            })
+            .unwrap_or_default();
+        for key in lost {
+            if let Some(tile) = self
+                .jobs
+                .get_mut(&key.0)
+                .and_then(|j| j.runs.get_mut(key.1 as usize))
+                .and_then(|r| r.tiles.get_mut(key.2 as usize))
+            {
+                if tile.lease.as_ref().is_some_and(|l| l.worker == worker) {
+                    tracing::debug!(
+                        job = key.0,
+                        run = key.1,
+                        tile = key.2,
+                        worker,
+                        "lease never reached its worker; released"
+                    );
+                    tile.lease = None;
+                }
+            }
+            if let Some(w) = self.workers.get_mut(worker) {
+                w.leases.remove(&key);
             }
         }
         revoked

@@ -174,7 +174,7 @@ impl Ledger {
     /// labelled by an earlier orbit) with the steps they had taken.
     pub fn record_abandoned(&mut self, orbits: u64, steps: u64) {
         self.dropped += orbits;
-        self.dropped_steps += steps;
+        self.dropped_steps = self.dropped_steps.saturating_add(steps);
     }
 
     /// Accepts an outcome (any order) and commits whatever the canonical order now allows.
@@ -188,7 +188,7 @@ impl Ledger {
         let pos = pos as usize;
         if pos < self.next || self.is_labelled(outcome.cell) || self.pending.contains_key(&pos) {
             self.dropped += 1;
-            self.dropped_steps += outcome.steps;
+            self.dropped_steps = self.dropped_steps.saturating_add(outcome.steps);
         } else {
             if self.mode == Mode::FastPss {
                 for &v in &outcome.visited {
@@ -209,7 +209,7 @@ impl Ledger {
                 if let Some(o) = self.pending.remove(&self.next) {
                     self.release_claims(&o, self.next);
                     self.dropped += 1;
-                    self.dropped_steps += o.steps;
+                    self.dropped_steps = self.dropped_steps.saturating_add(o.steps);
                 }
                 self.next += 1;
                 continue;
@@ -250,7 +250,7 @@ impl Ledger {
                 }
             }
         }
-        self.committed_steps += o.steps;
+        self.committed_steps = self.committed_steps.saturating_add(o.steps);
         self.committed.push(o);
     }
 }

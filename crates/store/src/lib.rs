@@ -324,6 +324,15 @@ impl Store {
         raws.into_iter().map(RawJob::into_row).collect()
     }
 
+    /// The database's random identity, fixed when it was created.
+    pub fn instance_id(&self) -> Result<String> {
+        Ok(self
+            .conn
+            .query_row("SELECT value FROM meta WHERE key = 'instance'", [], |row| {
+                row.get(0)
+            })?)
+    }
+
     /// Starts a group: every call until [`Store::commit_group`] joins one transaction, so a
     /// burst of reports and leases costs one fsync. The caller must not acknowledge anything
     /// done in the group before `commit_group` returns.

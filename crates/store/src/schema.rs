@@ -7,7 +7,7 @@ use crate::{Result, StoreError};
 
 /// The schema version this build writes and understands. A database with a larger
 /// `user_version` was written by a newer build and is refused rather than misread.
-pub const SCHEMA_VERSION: i32 = 1;
+pub const SCHEMA_VERSION: i32 = 2;
 
 /// `MIGRATIONS[v]` takes a database from version `v` to `v + 1`; version 0 is an empty (new)
 /// database. Append to this list; never edit a step that has shipped.
@@ -77,6 +77,15 @@ const MIGRATIONS: &[&str] = &[
         value INTEGER NOT NULL,
         PRIMARY KEY (job, name)
     ) WITHOUT ROWID;
+    "#,
+    // 1 -> 2: a random identity for the database, so workers can tell a coordinator restarted
+    // on the same store (resend, re-adopt) from one started on another (forget everything).
+    r#"
+    CREATE TABLE IF NOT EXISTS meta (
+        key   TEXT PRIMARY KEY,
+        value TEXT NOT NULL
+    ) WITHOUT ROWID;
+    INSERT OR IGNORE INTO meta (key, value) VALUES ('instance', lower(hex(randomblob(16))));
     "#,
 ];
 

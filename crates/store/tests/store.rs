@@ -570,3 +570,17 @@ fn a_group_commits_everything_at_once_or_nothing() {
     assert_eq!(s.attempts(job).unwrap(), vec![(0, 0, 1)]);
     assert_eq!(s.counters(job).unwrap()["stale_reports"], 2);
 }
+
+#[test]
+fn a_database_keeps_its_identity_and_another_has_another() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("a.db");
+    let id = Store::open(&a).unwrap().instance_id().unwrap();
+    assert_eq!(id.len(), 32);
+    assert_eq!(Store::open(&a).unwrap().instance_id().unwrap(), id);
+    let other = Store::open(&dir.path().join("b.db"))
+        .unwrap()
+        .instance_id()
+        .unwrap();
+    assert_ne!(other, id);
+}

@@ -87,6 +87,13 @@ impl tonic::service::Interceptor for Token {
 
 type Client = WorkerServiceClient<InterceptedService<Channel, Token>>;
 
+/// Runs whose grid a worker keeps built at once.
+const MAX_BUILT_RUNS: usize = 4;
+
+/// Reports sent in one poll at most (bytes); the rest go in the next, well below the
+/// coordinator's message limit.
+const POLL_REPORT_BYTES: usize = 4 << 20;
+
 /// A lease handed to the compute thread.
 struct Work {
     lease: v1::TileRef,
@@ -119,7 +126,10 @@ fn compute_thread(
     draining: Arc<AtomicBool>,
 ) {
     let chunk = (pool.current_num_threads() * LANES * 2).max(8);
-    let mut runs: HashMap<(u64, u32), (Grid, CellRun, Arc<Claims>)> = HashMap::new();
+    // Built grids per (job, run), each tied to the spec it was built from (a coordinator on
+    // another store reuses job ids), and few: a worker moves through runs in order.
+    type Built = (Arc<JobSpec>, Grid, CellRun, Arc<Claims>);
+    let mut runs: HashMap<(u64, u32), Built> = HashMap::new();
     while let Ok(w) = work.recv() {
         let key = w.lease.key();
         let lease_key = (key.0, key.1, key.2, w.lease.attempt);
@@ -127,12 +137,25 @@ fn compute_thread(
             let _ = done.send(Done::Released(w.lease));
             continue;
         }
-        let (grid, cell_run, claims) = runs.entry((key.0, key.1)).or_insert_with(|| {
+        if runs
+            .get(&(key.0, key.1))
+            .is_some_and(|b| !Arc::ptr_eq(&b.0, &w.spec))
+            || (runs.len() >= MAX_BUILT_RUNS && !runs.contains_key(&(key.0, key.1)))
+        {
+            runs.clear();
+            signals.lock().expect("signals").claims.clear();
+        }
+        let (_, grid, cell_run, claims) = runs.entry((key.0, key.1)).or_insert_with(|| {
             let grid = w.spec.grid();
             let claims = Arc::new(Claims::external(&grid));
             let mut s = signals.lock().expect("signals");
             s.claims.insert((key.0, key.1), claims.clone());
-            (grid, w.spec.cell_run(key.1 as usize), claims)
+            (
+                w.spec.clone(),
+                grid,
+                w.spec.cell_run(key.1 as usize),
+                claims,
+            )
         });
         {
             // The coordinator leases a cell only when it needs it: a claim left from an earlier
@@ -267,7 +290,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
 
     let mut client = connect(&opts).await?;
     let mut reg = register(&mut client, &opts).await?;
-    let mut specs: HashMap<u64, Arc<JobSpec>> = HashMap::new();
+    let mut specs: HashMap<u64, (String, Arc<JobSpec>)> = HashMap::new();
     let mut held: Vec<v1::TileRef> = Vec::new();
     let mut outbox: Vec<v1::TileReport> = Vec::new();
     let mut released: Vec<v1::TileRef> = Vec::new();
@@ -279,7 +302,10 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
     let mut hungry = Duration::from_millis(2);
     loop {
         let busy = Duration::from_millis(reg.poll_ms.clamp(10, 5000) as u64);
-        let idle = if held.len() < opts.max_leases && !draining.load(Ordering::Relaxed) {
+        let idle = if !outbox.is_empty() {
+            // Reports left over from a poll that carried its byte budget.
+            Duration::ZERO
+        } else if held.len() < opts.max_leases && !draining.load(Ordering::Relaxed) {
             hungry.min(busy)
         } else {
             busy
@@ -296,6 +322,10 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 while let Some(d) = next.take().or_else(|| done_rx.try_recv().ok()) {
                     match d {
                         Done::Report(r) => {
+                            // Reports of leases revoked or forgotten meanwhile are stale.
+                            if !held.iter().any(|h| Some(h) == r.lease.as_ref()) {
+                                continue;
+                            }
                             if r.finished {
                                 held.retain(|h| Some(h) != r.lease.as_ref());
                             }
@@ -322,9 +352,23 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 opts.max_leases.saturating_sub(held.len()) as u32
             },
             held: held.clone(),
-            reports: outbox.clone(),
+            reports: {
+                // At least one report, then as many as fit the budget.
+                let mut bytes = 0;
+                outbox
+                    .iter()
+                    .take_while(|r| {
+                        let first = bytes == 0;
+                        bytes += prost::Message::encoded_len(*r);
+                        first || bytes <= POLL_REPORT_BYTES
+                    })
+                    .cloned()
+                    .collect::<Vec<_>>()
+            },
             draining: draining_now,
         };
+        // The reply answers the reports this poll carried: the first `sent` of the outbox.
+        let sent = req.reports.len();
         match client.poll(req).await {
             Ok(reply) => {
                 backoff = Duration::from_millis(100);
@@ -336,12 +380,14 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     .map(|t| (t.job, t.run, t.tile, t.attempt))
                     .collect();
                 // Everything sent was answered (the reply covers the whole request).
-                let sent = outbox.len();
+                let before = outbox.len();
+                let mut k = 0;
                 outbox.retain(|r| {
+                    k += 1;
                     let l = r.lease.as_ref().expect("own reports carry their lease");
-                    !answered.contains(&(l.job, l.run, l.tile, l.attempt))
+                    k > sent || !answered.contains(&(l.job, l.run, l.tile, l.attempt))
                 });
-                if outbox.len() == sent && sent > 0 {
+                if outbox.len() == before && sent > 0 {
                     tracing::warn!(unanswered = sent, "reports not acknowledged; resending");
                 }
                 {
@@ -367,18 +413,21 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     outbox.retain(|o| o.lease.as_ref() != Some(r));
                 }
                 hungry = if reply.leases.is_empty() {
-                    (hungry * 2).min(busy).min(Duration::from_millis(10))
+                    (hungry * 2).min(busy)
                 } else {
                     Duration::from_millis(2)
                 };
                 for lease in reply.leases {
                     let Some(tile) = lease.lease else { continue };
                     let spec = match specs.get(&tile.job) {
-                        Some(s) => s.clone(),
-                        None => match spec::parse(&lease.spec_json, true) {
+                        Some((text, s)) if *text == lease.spec_json => s.clone(),
+                        _ => match spec::parse(&lease.spec_json, true) {
                             Ok(s) => {
                                 let s = Arc::new(s);
-                                specs.insert(tile.job, s.clone());
+                                if specs.len() >= 16 {
+                                    specs.retain(|job, _| held.iter().any(|h| h.job == *job));
+                                }
+                                specs.insert(tile.job, (lease.spec_json.clone(), s.clone()));
                                 s
                             }
                             Err(e) => {
@@ -405,7 +454,28 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 // The coordinator restarted and forgot us: register again, keep the outbox
                 // and the leases; the next poll resends and re-adopts them.
                 tracing::warn!(error = %e.message(), "coordinator does not know this worker");
-                reg = register(&mut client, &opts).await?;
+                let again = register(&mut client, &opts).await?;
+                if again.coordinator_id != reg.coordinator_id {
+                    // Another store: its job ids, tiles and attempts are not the ones we hold.
+                    tracing::warn!(
+                        dropped_reports = outbox.len(),
+                        dropped_leases = held.len(),
+                        "the coordinator runs on another store; forgetting jobs, leases and reports"
+                    );
+                    let mut s = signals.lock().expect("signals");
+                    for h in held.drain(..) {
+                        s.revoked.insert((h.job, h.run, h.tile, h.attempt));
+                    }
+                    outbox.clear();
+                    specs.clear();
+                }
+                reg = again;
+            }
+            Err(e) if e.code() == Code::InvalidArgument && sent > 0 => {
+                // The coordinator refuses what this poll carried (it changed nothing): drop
+                // those reports rather than resend them forever; their tiles are leased again.
+                tracing::error!(error = %e.message(), dropped_reports = sent, "the coordinator refused reports; dropping them");
+                outbox.drain(..sent.min(outbox.len()));
             }
             Err(e)
                 if matches!(
