@@ -368,8 +368,9 @@ where
                 if integ.t() < target {
                     // Within a long interval the vectors may grow past f64's range (C1 at
                     // τ = 1e4: e^(λτ) ≈ 1e195 per vector, squared past 1e308): renormalise
-                    // early, but only then, so ordinary runs keep the paper's protocol bit
-                    // for bit (the step control sees the vectors' scale).
+                    // early, but only when a squared norm leaves the band, so short intervals
+                    // (the paper's τ ≤ 0.5) keep the protocol bit for bit; the step control
+                    // sees the vectors' scale, so where it triggers the steps change.
                     let y = integ.state();
                     if (0..K).any(|k| !in_band(norm2(&y.dq[k], &y.dp[k]))) {
                         books.ln_growth += integ.renormalise();
