@@ -8,6 +8,7 @@ use salient_grid::{Grid, Ledger};
 use salient_proto::v1;
 use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
 use salient_store::{JobState, Report, Store, StoreError};
+use std::cell::RefCell;
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tonic::Status;
@@ -165,6 +166,9 @@ pub struct Scheduler {
     jobs: BTreeMap<u64, Job>,
     workers: HashMap<String, WorkerInfo>,
     next_worker: u64,
+    /// Final status of finished jobs no longer held in memory: `status` of every job must not
+    /// rebuild each finished job's ledgers from the store (health checks call it often).
+    finished: RefCell<HashMap<u64, v1::JobStatus>>,
     /// Distinguishes this process's worker ids from a previous coordinator's on the same store:
     /// a worker still holding an old id must get NOT_FOUND, never another worker's identity.
     epoch: u64,
@@ -181,6 +185,7 @@ impl Scheduler {
             cfg,
             jobs: BTreeMap::new(),
             workers: HashMap::new(),
+            finished: RefCell::new(HashMap::new()),
             next_worker: 1,
             epoch: SystemTime::now()
                 .duration_since(UNIX_EPOCH)
@@ -933,12 +938,28 @@ impl Scheduler {
 
     /// Status of one job (loaded from the store if finished) or of every job.
     pub fn status(&self, id: Option<u64>) -> Result<v1::StatusReply, Status> {
+        let one = |id: u64| -> Result<v1::JobStatus, Status> {
+            if let Some(j) = self.jobs.get(&id) {
+                return Ok(self.job_status(j));
+            }
+            if let Some(st) = self.finished.borrow().get(&id) {
+                return Ok(v1::JobStatus {
+                    workers: self.workers(),
+                    ..st.clone()
+                });
+            }
+            let st = self.job_status(&self.load_job(id)?);
+            if is_terminal_state(&st.state) {
+                self.finished.borrow_mut().insert(id, st.clone());
+            }
+            Ok(st)
+        };
         let jobs = match id {
-            Some(id) => vec![self.with_job(id, |j| self.job_status(j))?],
+            Some(id) => vec![one(id)?],
             None => {
                 let mut out = Vec::new();
                 for row in self.store.jobs().map_err(store_err)? {
-                    out.push(self.with_job(row.id, |j| self.job_status(j))?);
+                    out.push(one(row.id)?);
                 }
                 out
             }
@@ -990,7 +1011,15 @@ impl Scheduler {
 
     /// Whether the job is finished (done, cancelled or failed); unknown jobs are an error.
     pub fn is_finished(&self, id: u64) -> Result<bool, Status> {
-        self.with_job(id, |j| j.state.is_terminal())
+        match self.jobs.get(&id) {
+            Some(j) => Ok(j.state.is_terminal()),
+            None => self
+                .store
+                .job(id)
+                .map_err(store_err)?
+                .map(|row| row.state.is_terminal())
+                .ok_or_else(|| Status::not_found(format!("no job {id}"))),
+        }
     }
 
     /// Status lines for the periodic progress log.
@@ -1029,6 +1058,20 @@ impl Scheduler {
 
     /// Forgets finished jobs' in-memory state (the store keeps them).
     pub fn retire_finished(&mut self) {
-        self.jobs.retain(|_, j| !j.state.is_terminal());
+        let done: Vec<u64> = self
+            .jobs
+            .values()
+            .filter(|j| j.state.is_terminal())
+            .map(|j| j.id)
+            .collect();
+        for id in done {
+            let st = self.job_status(&self.jobs[&id]);
+            self.finished.borrow_mut().insert(id, st);
+            self.jobs.remove(&id);
+        }
     }
+}
+
+fn is_terminal_state(state: &str) -> bool {
+    JobState::parse(state).is_some_and(|s| s.is_terminal())
 }
