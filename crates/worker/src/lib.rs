@@ -431,7 +431,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                                 s
                             }
                             Err(e) => {
-                                tracing::error!(job = tile.job, error = %e, "cannot read the job's spec; leaving the lease to lapse");
+                                tracing::error!(job = tile.job, error = %e, "cannot read the job's spec; not taking the lease (the coordinator gets it back at the next poll)");
                                 continue;
                             }
                         },
