@@ -336,8 +336,13 @@ impl Scheduler {
         }
     }
 
-    /// Checks every report against the state before any of them changes it.
-    fn validate_reports(&self, reports: &[v1::TileReport]) -> Result<(), Status> {
+    /// Checks every report against the state before any of them changes it; returns each
+    /// report's outcomes as checked (none for a finished job's).
+    fn validate_reports(
+        &self,
+        reports: &[v1::TileReport],
+    ) -> Result<Vec<Vec<salient_grid::Outcome>>, Status> {
+        let mut checked_all = Vec::with_capacity(reports.len());
         for r in reports {
             let lease = r
                 .lease
@@ -345,6 +350,7 @@ impl Scheduler {
                 .ok_or_else(|| Status::invalid_argument("report.lease is required"))?;
             let Some(job) = self.jobs.get(&lease.job) else {
                 if self.store.job(lease.job).map_err(store_err)?.is_some() {
+                    checked_all.push(Vec::new());
                     continue; // a finished job: answered, no effect
                 }
                 return Err(Status::invalid_argument(format!(
@@ -372,6 +378,7 @@ impl Scheduler {
                     lease.attempt, lease, tile.attempt
                 )));
             }
+            let mut checked_report = Vec::with_capacity(r.outcomes.len());
             for o in &r.outcomes {
                 let checked = outcome_from_wire(o, &run.grid, run.checkpoints)
                     .map_err(Status::invalid_argument)?;
@@ -381,9 +388,11 @@ impl Scheduler {
                         o.cell, lease.tile
                     )));
                 }
+                checked_report.push(checked);
             }
+            checked_all.push(checked_report);
         }
-        Ok(())
+        Ok(checked_all)
     }
 
     fn apply_reports(
@@ -392,8 +401,8 @@ impl Scheduler {
         reports: &[v1::TileReport],
         out: &mut Replies,
     ) -> Result<(), Status> {
-        self.validate_reports(reports)?;
-        for r in reports {
+        let checked_all = self.validate_reports(reports)?;
+        for (r, checked) in reports.iter().zip(checked_all) {
             let lease = r.lease.expect("validated");
             let key = lease.key();
             let Some(job) = self.jobs.get_mut(&lease.job) else {
@@ -437,12 +446,9 @@ impl Scheduler {
             let fresh: Vec<(u32, Vec<u8>, salient_grid::Outcome)> = r
                 .outcomes
                 .iter()
-                .filter(|o| !run.stored[o.cell as usize] && seen.insert(o.cell))
-                .map(|o| {
-                    let checked =
-                        outcome_from_wire(o, &run.grid, run.checkpoints).expect("validated");
-                    (o.cell, o.encode_to_vec(), checked)
-                })
+                .zip(checked)
+                .filter(|(o, _)| !run.stored[o.cell as usize] && seen.insert(o.cell))
+                .map(|(o, checked)| (o.cell, o.encode_to_vec(), checked))
                 .collect();
             if !fresh.is_empty() {
                 let blobs: Vec<(u32, &[u8])> =
