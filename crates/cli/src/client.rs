@@ -106,12 +106,6 @@ fn rpc_error(what: &str, e: tonic::Status) -> CliError {
 }
 
 async fn connect(c: &Connection) -> CliResult<Client> {
-    if !(c.coordinator.starts_with("http://") || c.coordinator.starts_with("https://")) {
-        return Err(CliError::Usage(format!(
-            "--coordinator must be an http:// or https:// URL (got {:?})",
-            c.coordinator
-        )));
-    }
     let ca =
         match &c.tls_ca {
             Some(p) => Some(std::fs::read(p).map_err(|e| {

@@ -165,12 +165,8 @@ pub fn worker(args: WorkerArgs) -> CliResult<()> {
             args.leases
         )));
     }
-    if !(args.coordinator.starts_with("http://") || args.coordinator.starts_with("https://")) {
-        return Err(CliError::Usage(format!(
-            "--coordinator must be an http:// or https:// URL (got {:?})",
-            args.coordinator
-        )));
-    }
+    // Bad addresses are bad input (exit 2), found before anything starts.
+    salient_worker::endpoint(&args.coordinator, None).map_err(CliError::Usage)?;
     let tls_ca = args
         .tls_ca
         .as_ref()

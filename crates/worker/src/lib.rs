@@ -53,6 +53,11 @@ pub fn process_cpu_seconds() -> f64 {
 
 /// An endpoint for `url` with TLS when it is https.
 pub fn endpoint(url: &str, tls_ca: Option<&[u8]>) -> Result<Endpoint, String> {
+    if !(url.starts_with("http://") || url.starts_with("https://")) {
+        return Err(format!(
+            "--coordinator must be an http:// or https:// URL (got {url:?})"
+        ));
+    }
     let mut ep = Endpoint::from_shared(url.to_string())
         .map_err(|e| format!("--coordinator {url:?} is not a valid URL: {e}"))?
         .connect_timeout(Duration::from_secs(5))
