@@ -6,15 +6,18 @@
 //! the fast path; only lanes where something happens (a crossing, a rescaling, a possible early
 //! stop, the end) drop to the scalar [`Tracker`](crate::orbit) that the one-orbit driver uses.
 //! Every lane therefore produces bit for bit the result of [`integrate`](crate::orbit::integrate)
-//! for its orbit. A lane whose orbit ends is refilled with the next initial condition at once.
+//! for its orbit. A lane whose orbit ends is refilled from the caller's [`BatchFeed`] at once,
+//! so the lanes stay full however unequal the orbits' lengths (early stops), and each result
+//! reaches the caller the moment its orbit ends.
 
 use crate::hamiltonian::Hamiltonian;
 use crate::indicators::{alignment_factor, in_band};
 use crate::orbit::{
     escape_radius2, initial_vectors, integrate, steps_to, OrbitConfig, OrbitResult, Requests,
-    Tracker,
+    Tracker, ENERGY_CHECK_EVERY,
 };
 use crate::real::{dot, Lanes};
+use crate::section::Crossing;
 use crate::tangent::{EdgeIncrement, Phase, TangentMap};
 
 fn get_lane<const N: usize, const K: usize, const L: usize>(
@@ -57,10 +60,44 @@ fn set_lane<const N: usize, const K: usize, const L: usize>(
 }
 
 struct Job<'h, H, const N: usize, const K: usize> {
-    index: usize,
+    id: usize,
     tracker: Tracker<'h, H, K>,
     result: OrbitResult<N>,
 }
+
+/// What a [`BatchFeed`] answers when a lane asks for work.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Feed<const N: usize> {
+    /// Integrate the orbit from (q, p); the id comes back with its result.
+    Orbit(usize, [f64; N], [f64; N]),
+    /// Nothing now; more may come (an idle lane asks again every [`CANCEL_POLL`] steps).
+    Wait,
+    /// Nothing more will come.
+    Done,
+}
+
+/// The batched driver's source of orbits and sink of results, with hooks that let the caller
+/// watch crossings as they are found and abandon orbits it no longer needs (the fast-PSS
+/// engine abandons orbits whose cell is certain to be labelled by another). Hooks never change
+/// the results of the orbits that complete.
+pub trait BatchFeed<const N: usize> {
+    /// The next orbit for a free lane. `all_idle` is true when no lane has an orbit: the feed
+    /// may then block until it has one or knows there are none.
+    fn next(&mut self, all_idle: bool) -> Feed<N>;
+    /// Orbit `id` ended with `result`.
+    fn finished(&mut self, id: usize, result: OrbitResult<N>);
+    /// Called for every upward crossing of orbit `id` when it is located.
+    fn on_crossing(&mut self, _id: usize, _crossing: &Crossing<N>) {}
+    /// Polled every [`CANCEL_POLL`] steps: true abandons orbit `id` (no result is reported).
+    fn cancelled(&mut self, _id: usize) -> bool {
+        false
+    }
+    /// Orbit `id` was abandoned after `steps` steps.
+    fn abandoned(&mut self, _id: usize, _steps: u64) {}
+}
+
+/// Steps between polls of [`BatchFeed::cancelled`] (and between requests for work of idle lanes).
+pub const CANCEL_POLL: u64 = 64;
 
 /// Integrates every initial condition of `ics` as [`integrate`](crate::orbit::integrate) would,
 /// `L` at a time in SIMD lanes, and hands each result to `sink` with its index as soon as it
@@ -73,98 +110,175 @@ pub fn integrate_batch<H: Hamiltonian<N>, const N: usize, const K: usize, const 
     requests: &Requests,
     sink: impl FnMut(usize, OrbitResult<N>),
 ) {
-    integrate_batch_with::<H, N, K, L>(map, ics, config, requests, &NoHooks, sink)
-}
-
-/// Lets a caller watch crossings as they are found and abandon orbits whose results it no
-/// longer needs (the fast-PSS engine abandons orbits whose cell is certain to be labelled by
-/// another). Hooks never change the results of the orbits that complete.
-pub trait BatchHooks<const N: usize>: Sync {
-    /// Called for every upward crossing of orbit `ic` when it is located.
-    fn on_crossing(&self, _ic: usize, _crossing: &crate::section::Crossing<N>) {}
-    /// Polled every [`CANCEL_POLL`] steps: true abandons orbit `ic` (no result is reported).
-    fn cancelled(&self, _ic: usize) -> bool {
-        false
+    struct Slice<'a, const N: usize, S> {
+        ics: &'a [([f64; N], [f64; N])],
+        next: usize,
+        sink: S,
     }
-    /// Called when orbit `ic` is abandoned after `steps` steps.
-    fn abandoned(&self, _ic: usize, _steps: u64) {}
+    impl<const N: usize, S: FnMut(usize, OrbitResult<N>)> BatchFeed<N> for Slice<'_, N, S> {
+        fn next(&mut self, _all_idle: bool) -> Feed<N> {
+            match self.ics.get(self.next) {
+                Some(&(q, p)) => {
+                    self.next += 1;
+                    Feed::Orbit(self.next - 1, q, p)
+                }
+                None => Feed::Done,
+            }
+        }
+        fn finished(&mut self, id: usize, result: OrbitResult<N>) {
+            (self.sink)(id, result)
+        }
+    }
+    let mut feed = Slice { ics, next: 0, sink };
+    integrate_feed::<H, N, K, L>(map, config, requests, &mut feed)
 }
 
-/// No hooks.
-pub struct NoHooks;
-impl<const N: usize> BatchHooks<N> for NoHooks {}
+/// The lanes' state besides the phase point: what the vectorised screening compares against.
+struct LaneRefs<const L: usize> {
+    /// Initial energy, and the scale |ΔH| is divided by (as in the tracker).
+    h0: Lanes<L>,
+    /// Half the energy-drift limit times the scale: a conservative screen for the tracker's
+    /// check (a spurious flag costs one scalar pass that does nothing).
+    drift_screen: [f64; L],
+    active: [bool; L],
+    n: [u64; L],
+}
 
-/// Steps between polls of [`BatchHooks::cancelled`].
-pub const CANCEL_POLL: u64 = 64;
-
-/// [`integrate_batch`] with hooks; abandoned orbits are not handed to `sink`.
-pub fn integrate_batch_with<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
+/// Integrates the orbits `feed` supplies, `L` at a time in SIMD lanes, each exactly as
+/// [`integrate`](crate::orbit::integrate) would, and hands each result to the feed the moment
+/// its orbit ends. Returns when the feed says [`Feed::Done`] and every lane is empty.
+pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
     map: &TangentMap<'_, H>,
-    ics: &[([f64; N], [f64; N])],
     config: &OrbitConfig,
     requests: &Requests,
-    hooks: &dyn BatchHooks<N>,
-    mut sink: impl FnMut(usize, OrbitResult<N>),
+    feed: &mut impl BatchFeed<N>,
 ) {
     assert_eq!(
         requests.samples_per_decade, 0,
         "the batched driver records no time series"
     );
-    if steps_to(config.t_final, map.tau()) == 0 {
-        for (i, &(q, p)) in ics.iter().enumerate() {
-            sink(i, integrate::<H, N, K>(map, q, p, config, requests));
+    let n_final = steps_to(config.t_final, map.tau());
+    if n_final == 0 {
+        loop {
+            match feed.next(true) {
+                Feed::Orbit(id, q, p) => {
+                    feed.finished(id, integrate::<H, N, K>(map, q, p, config, requests))
+                }
+                Feed::Wait => continue,
+                Feed::Done => return,
+            }
         }
-        return;
     }
+    let ham = map.hamiltonian();
     let (dq0, dp0) = initial_vectors::<N, K>(config.deviation);
     let mut x: Phase<Lanes<L>, N, K> = Phase::zero();
     let mut inc = map.edge_increment(&x);
     let mut jobs: [Option<Job<'_, H, N, K>>; L] = core::array::from_fn(|_| None);
-    let mut next = 0usize;
-    let every_step = requests.energy;
+    let mut refs = LaneRefs::<L> {
+        h0: Lanes([0.0; L]),
+        drift_screen: [0.0; L],
+        active: [false; L],
+        n: [0; L],
+    };
+    let mut exhausted = false;
 
-    let load = |l: usize,
-                next: &mut usize,
+    // Puts the feed's next orbit (if any) into lane `l`; an empty lane holds zeros and is never
+    // flagged (its `active` is false).
+    let fill = |l: usize,
+                all_idle: bool,
+                exhausted: &mut bool,
+                feed: &mut dyn FnMut(bool) -> Feed<N>,
                 x: &mut Phase<Lanes<L>, N, K>,
-                inc: &mut EdgeIncrement<Lanes<L>, N, K>|
+                inc: &mut EdgeIncrement<Lanes<L>, N, K>,
+                refs: &mut LaneRefs<L>|
      -> Option<Job<'_, H, N, K>> {
-        let (sx, job) = if *next < ics.len() {
-            let (q, p) = ics[*next];
-            let sx = Phase {
-                q,
-                p,
-                dq: dq0,
-                dp: dp0,
-            };
-            let mut result = OrbitResult::empty();
-            let mut tracker = Tracker::new(map, &sx, config, requests);
-            tracker.begin(&mut result);
-            let job = Job {
-                index: *next,
-                tracker,
-                result,
-            };
-            *next += 1;
-            (sx, Some(job))
+        let next = if *exhausted {
+            Feed::Done
         } else {
-            (Phase::zero(), None)
+            feed(all_idle)
+        };
+        let (sx, job) = match next {
+            Feed::Orbit(id, q, p) => {
+                let sx = Phase {
+                    q,
+                    p,
+                    dq: dq0,
+                    dp: dp0,
+                };
+                let mut result = OrbitResult::empty();
+                let mut tracker = Tracker::new(map, &sx, config, requests);
+                tracker.begin(&mut result);
+                let h0 = ham.energy(&q, &p);
+                let scale = if h0.abs() > 1e-300 { h0.abs() } else { 1.0 };
+                refs.h0.0[l] = h0;
+                refs.drift_screen[l] = 0.5 * config.thresholds.energy_drift * scale;
+                (
+                    sx,
+                    Some(Job {
+                        id,
+                        tracker,
+                        result,
+                    }),
+                )
+            }
+            Feed::Wait | Feed::Done => {
+                *exhausted |= next == Feed::Done;
+                (Phase::zero(), None)
+            }
         };
         set_lane(x, inc, l, &sx, &map.edge_increment(&sx));
+        refs.active[l] = job.is_some();
+        refs.n[l] = 0;
         job
     };
 
     for (l, job) in jobs.iter_mut().enumerate() {
-        *job = load(l, &mut next, &mut x, &mut inc);
+        *job = fill(
+            l,
+            false,
+            &mut exhausted,
+            &mut |a| feed.next(a),
+            &mut x,
+            &mut inc,
+            &mut refs,
+        );
     }
-    let r2_max = escape_radius2(map.hamiltonian(), config);
+    let r2_max = escape_radius2(ham, config);
     let factor = alignment_factor(config.thresholds.chaotic);
-    let n_final = steps_to(config.t_final, map.tau());
     let (crossings, early) = (requests.crossings, config.thresholds.early_stop);
-    // Steps done per lane; an idle lane (no orbit left to load) holds zeros and is never flagged.
-    let mut n = [0u64; L];
-    let mut active: [bool; L] = core::array::from_fn(|l| jobs[l].is_some());
+    let every_step = requests.energy;
+    let mut step = 0u64;
 
-    while active.iter().any(|&a| a) {
+    loop {
+        if !refs.active.iter().any(|&a| a) {
+            if exhausted {
+                return;
+            }
+            jobs[0] = fill(
+                0,
+                true,
+                &mut exhausted,
+                &mut |a| feed.next(a),
+                &mut x,
+                &mut inc,
+                &mut refs,
+            );
+            for (l, job) in jobs.iter_mut().enumerate().skip(1) {
+                if refs.active[0] {
+                    *job = fill(
+                        l,
+                        false,
+                        &mut exhausted,
+                        &mut |a| feed.next(a),
+                        &mut x,
+                        &mut inc,
+                        &mut refs,
+                    );
+                }
+            }
+            continue;
+        }
+        step += 1;
         let (q_prev, p_prev) = (x.q, x.p);
         map.advance(&mut x, &mut inc);
 
@@ -174,27 +288,50 @@ pub fn integrate_batch_with<H: Hamiltonian<N>, const N: usize, const K: usize, c
         let n2: [Lanes<L>; K] =
             core::array::from_fn(|k| dot(&x.dq[k], &x.dq[k]) + dot(&x.dp[k], &x.dp[k]));
         let c = dot(&x.dq[0], &x.dq[1]) + dot(&x.dp[0], &x.dp[1]);
+        let mut energy_due = [false; L];
+        for l in 0..L {
+            refs.n[l] += 1;
+            energy_due[l] =
+                every_step | refs.n[l].is_multiple_of(ENERGY_CHECK_EVERY) | (refs.n[l] >= n_final);
+        }
+        let dh = if energy_due.iter().any(|&d| d) {
+            ham.energy(&x.q, &x.p) - refs.h0
+        } else {
+            Lanes([0.0; L])
+        };
         let mut flagged = [false; L];
         // `!(a <= b)` is true for NaN too, which is the point.
         #[allow(clippy::neg_cmp_op_on_partial_ord)]
         for l in 0..L {
-            n[l] += 1;
-            let mut f = every_step | (n[l] >= n_final) | !(r2.0[l] <= r2_max);
+            let mut f = energy_due[l] & !(dh.0[l].abs() <= refs.drift_screen[l]);
+            f |= every_step | (refs.n[l] >= n_final) | !(r2.0[l] <= r2_max);
             for n2k in &n2 {
                 f |= !in_band(n2k.0[l]);
             }
             f |= crossings & (q_prev[0].0[l] < 0.0) & (x.q[0].0[l] >= 0.0);
             f |= early & (c.0[l] * c.0[l] >= n2[0].0[l] * n2[1].0[l] * factor);
-            flagged[l] = f & active[l];
+            flagged[l] = f & refs.active[l];
         }
-        if n[0] % CANCEL_POLL == 0 {
+        if step.is_multiple_of(CANCEL_POLL) {
             for l in 0..L {
-                if let Some(j) = jobs[l].as_ref().filter(|j| hooks.cancelled(j.index)) {
-                    hooks.abandoned(j.index, n[l]);
-                    jobs[l] = load(l, &mut next, &mut x, &mut inc);
-                    active[l] = jobs[l].is_some();
+                let cancel = match jobs[l].as_ref() {
+                    Some(j) => feed.cancelled(j.id),
+                    None => !exhausted,
+                };
+                if cancel {
+                    if let Some(j) = jobs[l].take() {
+                        feed.abandoned(j.id, refs.n[l]);
+                    }
+                    jobs[l] = fill(
+                        l,
+                        false,
+                        &mut exhausted,
+                        &mut |a| feed.next(a),
+                        &mut x,
+                        &mut inc,
+                        &mut refs,
+                    );
                     flagged[l] = false;
-                    n[l] = 0;
                 }
             }
         }
@@ -204,19 +341,26 @@ pub fn integrate_batch_with<H: Hamiltonian<N>, const N: usize, const K: usize, c
             let (mut sx, mut sinc) = get_lane(&x, &inc, l);
             let qp: [f64; N] = core::array::from_fn(|i| q_prev[i].0[l]);
             let pp: [f64; N] = core::array::from_fn(|i| p_prev[i].0[l]);
+            let n = refs.n[l];
             let stop =
                 job.tracker
-                    .after_step(map, n[l], &qp, &pp, &mut sx, &mut sinc, &mut job.result);
+                    .after_step(map, n, &qp, &pp, &mut sx, &mut sinc, &mut job.result);
             for c in &job.result.crossings[crossings_before..] {
-                hooks.on_crossing(job.index, c);
+                feed.on_crossing(job.id, c);
             }
-            if stop || n[l] == n_final {
+            if stop || n == n_final {
                 let mut j = jobs[l].take().expect("active");
-                j.tracker.finish(n[l], &sx, &mut j.result);
-                sink(j.index, j.result);
-                jobs[l] = load(l, &mut next, &mut x, &mut inc);
-                active[l] = jobs[l].is_some();
-                n[l] = 0;
+                j.tracker.finish(n, &sx, &mut j.result);
+                feed.finished(j.id, j.result);
+                jobs[l] = fill(
+                    l,
+                    false,
+                    &mut exhausted,
+                    &mut |a| feed.next(a),
+                    &mut x,
+                    &mut inc,
+                    &mut refs,
+                );
             } else {
                 set_lane(&mut x, &mut inc, l, &sx, &sinc);
             }

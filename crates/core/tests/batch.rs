@@ -3,7 +3,7 @@
 #![allow(clippy::needless_range_loop, clippy::excessive_precision)]
 
 use salient_core::batch::integrate_batch;
-use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests};
+use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests, Status};
 use salient_core::section::on_section;
 use salient_core::{HenonHeiles, Scheme, TangentMap};
 
@@ -48,7 +48,12 @@ fn ics() -> Vec<([f64; 2], [f64; 2])> {
     v
 }
 
-fn check<const L: usize>(scheme: &str, tau: f64, t_final: f64, requests: Requests) {
+fn check<const L: usize>(
+    scheme: &str,
+    tau: f64,
+    t_final: f64,
+    requests: Requests,
+) -> std::collections::HashSet<Status> {
     let ham = HenonHeiles;
     let map = TangentMap::new(&ham, &Scheme::by_name(scheme).unwrap(), tau);
     let ics = ics();
@@ -68,7 +73,13 @@ fn check<const L: usize>(scheme: &str, tau: f64, t_final: f64, requests: Request
         );
         statuses.insert(want.status);
     }
-    // The sample covers the interesting paths: full runs, early stops and escapes.
+    statuses
+}
+
+/// [`check`], asserting that the sample covers the interesting paths: full runs, early stops
+/// and escapes.
+fn check_varied<const L: usize>(scheme: &str, tau: f64, t_final: f64, requests: Requests) {
+    let statuses = check::<L>(scheme, tau, t_final, requests);
     if t_final > 0.0 {
         assert!(statuses.len() >= 2, "{statuses:?}");
     }
@@ -79,15 +90,15 @@ fn check<const L: usize>(scheme: &str, tau: f64, t_final: f64, requests: Request
 
 #[test]
 fn batched_lanes_equal_scalar_orbits_bit_for_bit() {
-    check::<4>("sbab2c", 0.5, 0.0, Requests::default());
+    check_varied::<4>("sbab2c", 0.5, 0.0, Requests::default());
     let crossings = Requests {
         crossings: true,
         ..Requests::default()
     };
-    check::<4>("sbab2c", 0.05, 1500.0, crossings);
-    check::<8>("sbab2c", 0.5, 3000.0, crossings);
-    check::<4>("saba2c", 0.1, 1000.0, Requests::default());
-    check::<8>(
+    check_varied::<4>("sbab2c", 0.05, 1500.0, crossings);
+    check_varied::<8>("sbab2c", 0.5, 3000.0, crossings);
+    check_varied::<4>("saba2c", 0.1, 1000.0, Requests::default());
+    check_varied::<8>(
         "srkn14a",
         0.25,
         1000.0,
@@ -98,5 +109,22 @@ fn batched_lanes_equal_scalar_orbits_bit_for_bit() {
         },
     );
     // More lanes than orbits, and orbits that end before their first step.
-    check::<64>("sbab2c", 0.5, 200.0, crossings);
+    check_varied::<64>("sbab2c", 0.5, 200.0, crossings);
+}
+
+/// Steps beyond the splitting's stability limit: the energy checks every
+/// `ENERGY_CHECK_EVERY` steps stop the same orbits at the same step in both drivers.
+#[test]
+fn batched_lanes_stop_on_energy_drift_at_the_scalar_step() {
+    let crossings = Requests {
+        crossings: true,
+        ..Requests::default()
+    };
+    for tau in [0.9, 1.0, 2.0] {
+        let statuses = check::<4>("sbab2c", tau, 400.0, crossings);
+        assert!(
+            statuses.contains(&Status::EnergyDrift),
+            "τ = {tau}: {statuses:?}"
+        );
+    }
 }

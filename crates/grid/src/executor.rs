@@ -7,7 +7,7 @@
 use crate::geometry::Grid;
 use crate::ledger::{Ledger, Mode, Outcome};
 use rayon::prelude::*;
-use salient_core::batch::{integrate_batch, integrate_batch_with, BatchHooks};
+use salient_core::batch::{integrate_feed, BatchFeed, Feed};
 use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
@@ -17,7 +17,7 @@ use salient_core::section::on_section;
 use salient_core::section::Crossing;
 use salient_core::{HenonHeiles, TangentMap};
 use std::collections::HashSet;
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Mutex;
 
 /// Orbits advanced together in one batched stepper.
@@ -91,6 +91,10 @@ pub struct Claims {
     frontier: AtomicUsize,
     position: Vec<u32>,
     claimed: Vec<AtomicBool>,
+    /// Per cell, the lowest canonical position of a running orbit that crossed it: if that
+    /// orbit commits, the cell is labelled by it, so integrating the cell now is probably
+    /// wasted (a hint for choosing work, never a reason to abandon an orbit).
+    crossed_by: Vec<AtomicU32>,
     abandoned: AtomicU64,
     abandoned_steps: AtomicU64,
 }
@@ -103,6 +107,9 @@ impl Claims {
                 .map(|c| grid.position(c).map_or(u32::MAX, |p| p as u32))
                 .collect(),
             claimed: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+            crossed_by: (0..grid.cells())
+                .map(|_| AtomicU32::new(u32::MAX))
+                .collect(),
             abandoned: AtomicU64::new(0),
             abandoned_steps: AtomicU64::new(0),
         }
@@ -147,6 +154,33 @@ impl Claims {
         self.claimed[cell as usize].load(Ordering::Relaxed) && !self.is_frontier(cell)
     }
 
+    /// Orbit `from` crossed the section at `c`: if it is the frontier orbit, the cell it crossed
+    /// is certain to be labelled by it.
+    fn frontier_crossed(&self, grid: &Grid, from: u32, c: &Crossing<2>) {
+        if self.is_frontier(from) {
+            if let Some(cell) = grid.cell_of(c.q[1], c.p[1]) {
+                self.claimed[cell as usize].store(true, Ordering::Relaxed);
+            }
+        }
+    }
+
+    /// The running orbit of cell `from` crossed `cell`.
+    fn note_crossed(&self, from: u32, cell: u32) {
+        self.crossed_by[cell as usize].fetch_min(self.position[from as usize], Ordering::Relaxed);
+    }
+
+    /// The lowest canonical position of a running orbit seen crossing `cell` (maybe since
+    /// finished or abandoned: callers check), if it lies before the cell's own.
+    fn earlier_crosser(&self, cell: u32) -> Option<usize> {
+        let by = self.crossed_by[cell as usize].load(Ordering::Relaxed);
+        (by < self.position[cell as usize]).then_some(by as usize)
+    }
+
+    fn record_abandoned(&self, steps: u64) {
+        self.abandoned.fetch_add(1, Ordering::Relaxed);
+        self.abandoned_steps.fetch_add(steps, Ordering::Relaxed);
+    }
+
     /// Orbits abandoned and the steps they had taken.
     pub fn abandoned(&self) -> (u64, u64) {
         (
@@ -156,34 +190,72 @@ impl Claims {
     }
 }
 
-struct ChunkHooks<'a> {
+/// The feed of a fixed list of cells shared by several batched drivers: each free lane takes
+/// the next cell of the list, so lanes stay full until the list runs out.
+struct CellsFeed<'a> {
     grid: &'a Grid,
-    chunk: &'a [u32],
-    claims: &'a Claims,
+    cell_run: &'a CellRun,
+    checkpoints: &'a [u64],
+    cells: &'a [u32],
+    cursor: &'a AtomicUsize,
+    claims: Option<&'a Claims>,
+    /// (position in `cells`, outcome) of the orbits this driver finished.
+    done: Vec<(usize, Outcome)>,
 }
 
-impl BatchHooks<2> for ChunkHooks<'_> {
-    fn on_crossing(&self, ic: usize, c: &Crossing<2>) {
-        if self.claims.is_frontier(self.chunk[ic]) {
-            if let Some(cell) = self.grid.cell_of(c.q[1], c.p[1]) {
-                self.claims.claimed[cell as usize].store(true, Ordering::Relaxed);
+impl BatchFeed<2> for CellsFeed<'_> {
+    fn next(&mut self, _all_idle: bool) -> Feed<2> {
+        let i = self.cursor.fetch_add(1, Ordering::Relaxed);
+        match self.cells.get(i) {
+            Some(&cell) => {
+                let (q, p) = initial_point(self.grid, cell);
+                Feed::Orbit(i, q, p)
             }
+            None => Feed::Done,
         }
     }
-    fn cancelled(&self, ic: usize) -> bool {
-        self.claims.is_claimed(self.chunk[ic])
+    fn finished(&mut self, i: usize, r: OrbitResult<2>) {
+        let o = outcome(
+            self.grid,
+            self.cell_run,
+            self.checkpoints,
+            self.cells[i],
+            &r,
+        );
+        self.done.push((i, o));
     }
-    fn abandoned(&self, _ic: usize, steps: u64) {
-        self.claims.abandoned.fetch_add(1, Ordering::Relaxed);
-        self.claims
-            .abandoned_steps
-            .fetch_add(steps, Ordering::Relaxed);
+    fn on_crossing(&mut self, i: usize, c: &Crossing<2>) {
+        if let Some(claims) = self.claims {
+            claims.frontier_crossed(self.grid, self.cells[i], c);
+        }
     }
+    fn cancelled(&mut self, i: usize) -> bool {
+        self.claims.is_some_and(|c| c.is_claimed(self.cells[i]))
+    }
+    fn abandoned(&mut self, _i: usize, steps: u64) {
+        if let Some(claims) = self.claims {
+            claims.record_abandoned(steps);
+        }
+    }
+}
+
+fn initial_point(grid: &Grid, cell: u32) -> ([f64; 2], [f64; 2]) {
+    let (q2, p2) = grid.centre(cell);
+    on_section(&HenonHeiles, grid.energy, &[q2], &[p2])
+        .expect("compatible cells lie on the section")
 }
 
 /// Integrates `cells` (compatible cells of `grid`) and returns their outcomes in the same order.
 pub fn integrate_cells(grid: &Grid, cell_run: &CellRun, mode: Mode, cells: &[u32]) -> Vec<Outcome> {
     integrate_cells_with(grid, cell_run, mode, cells, None)
+}
+
+fn requests_for(cell_run: &CellRun, mode: Mode) -> Requests {
+    Requests {
+        crossings: mode == Mode::FastPss,
+        samples_per_decade: cell_run.checkpoints_per_decade,
+        ..Requests::default()
+    }
 }
 
 /// [`integrate_cells`], abandoning orbits the frontier orbit claims; abandoned cells get no
@@ -196,52 +268,40 @@ pub fn integrate_cells_with(
     claims: Option<&Claims>,
 ) -> Vec<Outcome> {
     let ham = HenonHeiles;
-    let requests = Requests {
-        crossings: mode == Mode::FastPss,
-        samples_per_decade: cell_run.checkpoints_per_decade,
-        ..Requests::default()
-    };
+    let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
-    let ic = |cell: u32| {
-        let (q2, p2) = grid.centre(cell);
-        on_section(&ham, grid.energy, &[q2], &[p2]).expect("compatible cells lie on the section")
-    };
     match &cell_run.run.method {
         Method::TangentMap(scheme) if requests.samples_per_decade == 0 => {
             let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
-            cells
-                .par_chunks(LANES)
-                .flat_map_iter(|chunk| {
-                    let ics: Vec<_> = chunk.iter().map(|&c| ic(c)).collect();
-                    let mut out: Vec<Option<Outcome>> = vec![None; chunk.len()];
-                    let sink = |i: usize, r: OrbitResult<2>| {
-                        out[i] = Some(outcome(grid, cell_run, &checkpoints, chunk[i], &r));
+            let cursor = AtomicUsize::new(0);
+            let drivers = rayon::current_num_threads().min(cells.len().div_ceil(LANES));
+            let finished: Vec<(usize, Outcome)> = (0..drivers)
+                .into_par_iter()
+                .flat_map_iter(|_| {
+                    let mut feed = CellsFeed {
+                        grid,
+                        cell_run,
+                        checkpoints: &checkpoints,
+                        cells,
+                        cursor: &cursor,
+                        claims,
+                        done: Vec::new(),
                     };
-                    let config = &cell_run.config;
-                    match claims {
-                        Some(claims) => {
-                            let hooks = ChunkHooks {
-                                grid,
-                                chunk,
-                                claims,
-                            };
-                            integrate_batch_with::<_, 2, 2, LANES>(
-                                &map, &ics, config, &requests, &hooks, sink,
-                            )
-                        }
-                        None => {
-                            integrate_batch::<_, 2, 2, LANES>(&map, &ics, config, &requests, sink)
-                        }
-                    }
-                    // Abandoned orbits report nothing.
-                    out.into_iter().flatten()
+                    integrate_feed::<_, 2, 2, LANES>(&map, &cell_run.config, &requests, &mut feed);
+                    feed.done
                 })
-                .collect()
+                .collect();
+            let mut out: Vec<Option<Outcome>> = vec![None; cells.len()];
+            for (i, o) in finished {
+                out[i] = Some(o);
+            }
+            // Abandoned orbits report nothing.
+            out.into_iter().flatten().collect()
         }
         _ => cells
             .par_iter()
             .map(|&cell| {
-                let (q, p) = ic(cell);
+                let (q, p) = initial_point(grid, cell);
                 let r = run_orbit::<_, 2, 2>(
                     &ham,
                     &cell_run.run,
@@ -257,11 +317,130 @@ pub fn integrate_cells_with(
     }
 }
 
+/// What the embedded fast-PSS engine shares between its drivers.
+struct Shared<P> {
+    ledger: Ledger,
+    /// Cells whose orbit runs in some lane.
+    in_flight: HashSet<u32>,
+    progress: P,
+}
+
+/// The embedded engine's feed: a free lane takes the next cell the ledger needs (skipping
+/// cells in flight or certain to be labelled), and a finished orbit goes to the ledger at once.
+struct LedgerFeed<'a, P> {
+    grid: &'a Grid,
+    cell_run: &'a CellRun,
+    checkpoints: &'a [u64],
+    claims: &'a Claims,
+    shared: &'a Mutex<Shared<P>>,
+    /// The cells each of this driver's running orbits has crossed while not the frontier
+    /// orbit: claimed as soon as it becomes the frontier (None after that: it claims directly).
+    crossed: Vec<(u32, Option<Vec<u32>>)>,
+}
+
+impl<P> LedgerFeed<'_, P> {
+    fn forget(&mut self, cell: u32) {
+        self.crossed.retain(|(c, _)| *c != cell);
+    }
+}
+
+impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
+    fn next(&mut self, all_idle: bool) -> Feed<2> {
+        let cell = {
+            let mut g = self.shared.lock().expect("ledger lock");
+            let Shared {
+                ledger, in_flight, ..
+            } = &mut *g;
+            if ledger.done() {
+                return Feed::Done;
+            }
+            let claims = self.claims;
+            let canonical = self.grid.canonical();
+            // A cell crossed by an earlier running orbit or an earlier pending outcome will be
+            // labelled by it unless that orbit is dropped: take other cells first. The frontier
+            // cell is never skipped (nothing before it runs), so this cannot stall.
+            let cell = ledger
+                .needed(1, &|c| {
+                    in_flight.contains(&c)
+                        || claims.is_claimed(c)
+                        || ledger.is_claimed(c)
+                        || claims
+                            .earlier_crosser(c)
+                            .is_some_and(|pos| in_flight.contains(&canonical[pos]))
+                })
+                .first()
+                .copied();
+            if let Some(c) = cell {
+                in_flight.insert(c);
+            }
+            cell
+        };
+        if let Some(c) = cell {
+            self.crossed.push((c, Some(Vec::new())));
+        }
+        match cell {
+            Some(c) => {
+                let (q, p) = initial_point(self.grid, c);
+                Feed::Orbit(c as usize, q, p)
+            }
+            None => {
+                if all_idle {
+                    // Everything still needed is in flight elsewhere.
+                    std::thread::sleep(std::time::Duration::from_micros(50));
+                }
+                Feed::Wait
+            }
+        }
+    }
+    fn finished(&mut self, cell: usize, r: OrbitResult<2>) {
+        let cell = cell as u32;
+        self.forget(cell);
+        let o = outcome(self.grid, self.cell_run, self.checkpoints, cell, &r);
+        let mut g = self.shared.lock().expect("ledger lock");
+        let Shared {
+            ledger,
+            in_flight,
+            progress,
+        } = &mut *g;
+        ledger.offer(o);
+        in_flight.remove(&cell);
+        self.claims.sync(ledger);
+        progress(ledger);
+    }
+    fn on_crossing(&mut self, cell: usize, c: &Crossing<2>) {
+        let from = cell as u32;
+        let Some(to) = self.grid.cell_of(c.q[1], c.p[1]) else {
+            return;
+        };
+        let claims = self.claims;
+        let Some((_, list)) = self.crossed.iter_mut().find(|(c, _)| *c == from) else {
+            return;
+        };
+        if claims.is_frontier(from) {
+            for v in list.take().into_iter().flatten().chain([to]) {
+                claims.claimed[v as usize].store(true, Ordering::Relaxed);
+            }
+        } else if let Some(list) = list {
+            list.push(to);
+            claims.note_crossed(from, to);
+        }
+    }
+    fn cancelled(&mut self, cell: usize) -> bool {
+        self.claims.is_claimed(cell as u32)
+    }
+    fn abandoned(&mut self, cell: usize, steps: u64) {
+        self.forget(cell as u32);
+        self.claims.record_abandoned(steps);
+        let mut g = self.shared.lock().expect("ledger lock");
+        g.in_flight.remove(&(cell as u32));
+    }
+}
+
 /// Runs a whole grid in this process on the current rayon pool and returns the finished
-/// ledger. Fast PSS with a tangent-map method streams: every worker repeatedly takes the next
-/// `LANES` cells the ledger needs (skipping cells in flight or certain to be labelled),
-/// integrates them in the batched stepper, where orbits whose cell the frontier orbit crosses
-/// are abandoned, and offers the outcomes; speculation is bounded by one batch per worker.
+/// ledger. Fast PSS with a tangent-map method streams: every thread runs a batched stepper
+/// whose free lanes take the next cell the ledger needs (skipping cells in flight or certain
+/// to be labelled) and offer each outcome the moment its orbit ends; orbits whose cell the
+/// frontier orbit crosses are abandoned. Speculation is bounded by the lanes in flight.
 /// Other runs go in rounds of `window` cells: adaptive methods cannot abandon orbits, and
 /// streaming them measured slower (more dropped work) than rounds. Either way the labels are
 /// those of the sequential rule.
@@ -272,7 +451,9 @@ pub fn run_embedded(
     window: usize,
     mut progress: impl FnMut(&Ledger) + Send,
 ) -> Ledger {
-    let streaming = mode == Mode::FastPss && matches!(cell_run.run.method, Method::TangentMap(_));
+    let streaming = mode == Mode::FastPss
+        && cell_run.checkpoints_per_decade == 0
+        && matches!(cell_run.run.method, Method::TangentMap(_));
     if !streaming {
         let mut ledger = Ledger::new(grid, mode);
         while !ledger.done() {
@@ -285,42 +466,30 @@ pub fn run_embedded(
         return ledger;
     }
     let claims = Claims::new(grid);
-    let shared = Mutex::new((Ledger::new(grid, mode), HashSet::<u32>::new(), progress));
-    let workers = rayon::current_num_threads();
-    rayon::scope(|s| {
-        for _ in 0..workers {
-            s.spawn(|_| loop {
-                let cells = {
-                    let mut g = shared.lock().expect("ledger lock");
-                    let (ledger, in_flight, _) = &mut *g;
-                    if ledger.done() {
-                        break;
-                    }
-                    let cells =
-                        ledger.needed(LANES, &|c| in_flight.contains(&c) || claims.is_claimed(c));
-                    in_flight.extend(&cells);
-                    cells
-                };
-                if cells.is_empty() {
-                    // Everything still needed is in flight elsewhere.
-                    std::thread::sleep(std::time::Duration::from_micros(50));
-                    continue;
-                }
-                let outcomes = integrate_cells_with(grid, cell_run, mode, &cells, Some(&claims));
-                let mut g = shared.lock().expect("ledger lock");
-                let (ledger, in_flight, progress) = &mut *g;
-                for o in outcomes {
-                    ledger.offer(o);
-                }
-                for c in &cells {
-                    in_flight.remove(c);
-                }
-                claims.sync(ledger);
-                progress(ledger);
-            });
-        }
+    let shared = Mutex::new(Shared {
+        ledger: Ledger::new(grid, mode),
+        in_flight: HashSet::new(),
+        progress,
     });
-    let (mut ledger, _, _) = shared.into_inner().expect("ledger lock");
+    let Method::TangentMap(scheme) = &cell_run.run.method else {
+        unreachable!("streaming runs tangent-map methods")
+    };
+    let ham = HenonHeiles;
+    let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
+    let requests = requests_for(cell_run, mode);
+    let checkpoints = cell_run.checkpoint_steps();
+    rayon::broadcast(|_| {
+        let mut feed = LedgerFeed {
+            grid,
+            cell_run,
+            checkpoints: &checkpoints,
+            claims: &claims,
+            shared: &shared,
+            crossed: Vec::new(),
+        };
+        integrate_feed::<_, 2, 2, LANES>(&map, &cell_run.config, &requests, &mut feed);
+    });
+    let Shared { mut ledger, .. } = shared.into_inner().expect("ledger lock");
     let (n, steps) = claims.abandoned();
     ledger.record_abandoned(n, steps);
     ledger

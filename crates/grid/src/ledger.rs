@@ -56,6 +56,8 @@ pub struct Ledger {
     position: Vec<u32>,
     compatible: Vec<bool>,
     labels: Vec<Option<Label>>,
+    /// Labels set so far (progress reporting asks after every batch; counting would scan the grid).
+    resolved: usize,
     /// Next canonical position to commit.
     next: usize,
     pending: BTreeMap<usize, Outcome>,
@@ -84,6 +86,7 @@ impl Ledger {
                 .collect(),
             compatible: (0..cells as u32).map(|c| grid.is_compatible(c)).collect(),
             labels: vec![None; cells],
+            resolved: 0,
             next: 0,
             pending: BTreeMap::new(),
             committed: Vec::new(),
@@ -114,7 +117,7 @@ impl Ledger {
 
     /// Compatible cells labelled so far.
     pub fn resolved(&self) -> usize {
-        self.labels.iter().filter(|l| l.is_some()).count()
+        self.resolved
     }
 
     /// Canonical position of the first cell not yet committed or skipped.
@@ -241,11 +244,13 @@ impl Ledger {
             t_end: o.t_end,
         };
         self.labels[o.cell as usize] = Some(label);
+        self.resolved += 1;
         self.newly_labelled.push(o.cell);
         if self.mode == Mode::FastPss {
             for &v in &o.visited {
                 if self.compatible[v as usize] && self.labels[v as usize].is_none() {
                     self.labels[v as usize] = Some(label);
+                    self.resolved += 1;
                     self.newly_labelled.push(v);
                 }
             }
@@ -356,6 +361,8 @@ mod tests {
             let mut ledger = Ledger::new(&grid, mode);
             for &c in &order {
                 ledger.offer(fake(&grid, seed, c));
+                let labelled = (0..grid.cells() as u32).filter(|&c| ledger.is_labelled(c)).count();
+                prop_assert_eq!(ledger.resolved(), labelled);
             }
             prop_assert!(ledger.done());
             for c in 0..grid.cells() as u32 {
