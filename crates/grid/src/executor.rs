@@ -95,6 +95,8 @@ pub struct Claims {
     /// orbit commits, the cell is labelled by it, so integrating the cell now is probably
     /// wasted (a hint for choosing work, never a reason to abandon an orbit).
     crossed_by: Vec<AtomicU32>,
+    /// Per cell, whether its orbit is running in some lane.
+    running: Vec<AtomicBool>,
     abandoned: AtomicU64,
     abandoned_steps: AtomicU64,
 }
@@ -110,6 +112,7 @@ impl Claims {
             crossed_by: (0..grid.cells())
                 .map(|_| AtomicU32::new(u32::MAX))
                 .collect(),
+            running: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
             abandoned: AtomicU64::new(0),
             abandoned_steps: AtomicU64::new(0),
         }
@@ -169,11 +172,32 @@ impl Claims {
         self.crossed_by[cell as usize].fetch_min(self.position[from as usize], Ordering::Relaxed);
     }
 
-    /// The lowest canonical position of a running orbit seen crossing `cell` (maybe since
-    /// finished or abandoned: callers check), if it lies before the cell's own.
-    fn earlier_crosser(&self, cell: u32) -> Option<usize> {
+    /// The cell of the earliest orbit seen crossing `cell` while running, if it lies before the
+    /// cell in canonical order and still runs.
+    fn running_crosser(&self, grid: &Grid, cell: u32) -> Option<u32> {
         let by = self.crossed_by[cell as usize].load(Ordering::Relaxed);
-        (by < self.position[cell as usize]).then_some(by as usize)
+        if by >= self.position[cell as usize] {
+            return None;
+        }
+        let from = grid.canonical()[by as usize];
+        self.running[from as usize]
+            .load(Ordering::Relaxed)
+            .then_some(from)
+    }
+
+    /// Whether the orbit of `cell` is probably wasted: a running orbit before it crossed it,
+    /// and that orbit is itself neither claimed nor crossed by an earlier running one, so it
+    /// will very likely commit and label the cell. (If it does not, the cell is integrated
+    /// again later: abandoning costs the steps done so far, running on costs the rest.)
+    fn probably_labelled(&self, grid: &Grid, cell: u32) -> bool {
+        self.running_crosser(grid, cell).is_some_and(|from| {
+            !self.claimed[from as usize].load(Ordering::Relaxed)
+                && self.running_crosser(grid, from).is_none()
+        })
+    }
+
+    fn set_running(&self, cell: u32, running: bool) {
+        self.running[cell as usize].store(running, Ordering::Relaxed);
     }
 
     fn record_abandoned(&self, steps: u64) {
@@ -354,8 +378,7 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
             if ledger.done() {
                 return Feed::Done;
             }
-            let claims = self.claims;
-            let canonical = self.grid.canonical();
+            let (claims, grid) = (self.claims, self.grid);
             // A cell crossed by an earlier running orbit or an earlier pending outcome will be
             // labelled by it unless that orbit is dropped: take other cells first. The frontier
             // cell is never skipped (nothing before it runs), so this cannot stall.
@@ -364,14 +387,13 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
                     in_flight.contains(&c)
                         || claims.is_claimed(c)
                         || ledger.is_claimed(c)
-                        || claims
-                            .earlier_crosser(c)
-                            .is_some_and(|pos| in_flight.contains(&canonical[pos]))
+                        || claims.running_crosser(grid, c).is_some()
                 })
                 .first()
                 .copied();
             if let Some(c) = cell {
                 in_flight.insert(c);
+                claims.set_running(c, true);
             }
             cell
         };
@@ -395,6 +417,7 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
     fn finished(&mut self, cell: usize, r: OrbitResult<2>) {
         let cell = cell as u32;
         self.forget(cell);
+        self.claims.set_running(cell, false);
         let o = outcome(self.grid, self.cell_run, self.checkpoints, cell, &r);
         let mut g = self.shared.lock().expect("ledger lock");
         let Shared {
@@ -426,10 +449,11 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
         }
     }
     fn cancelled(&mut self, cell: usize) -> bool {
-        self.claims.is_claimed(cell as u32)
+        self.claims.is_claimed(cell as u32) || self.claims.probably_labelled(self.grid, cell as u32)
     }
     fn abandoned(&mut self, cell: usize, steps: u64) {
         self.forget(cell as u32);
+        self.claims.set_running(cell as u32, false);
         self.claims.record_abandoned(steps);
         let mut g = self.shared.lock().expect("ledger lock");
         g.in_flight.remove(&(cell as u32));
