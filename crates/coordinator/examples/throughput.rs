@@ -2,10 +2,12 @@
 //! scheduler (validation, SQLite commit with synchronous=FULL, ledger) and CPU per outcome,
 //! without networking or integration.
 //!
-//! cargo run --release -p salient-coordinator --example throughput -- [full|fast-pss] [visited] [group]
+//! cargo run --release -p salient-coordinator --example throughput -- [full|fast-pss] [visited] [group] [jobs]
 //!
 //! `group` polls share one store transaction, as the event loop groups the events that queued
-//! up while it worked (1: a transaction per poll).
+//! up while it worked (1: a transaction per poll). `jobs` (default 10) runs the same job that
+//! many times in a row, so the figure covers seconds rather than one job's tens of
+//! milliseconds.
 
 use salient_coordinator::scheduler::{Config, Scheduler};
 use salient_grid::spec;
@@ -31,6 +33,11 @@ fn main() {
     let mode = args.get(1).map_or("full", |s| s.as_str()).to_string();
     let visited: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(0);
     let group: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(8).max(1);
+    let jobs: usize = args
+        .get(4)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(10)
+        .max(1);
     let json = format!(
         r#"{{"name": "bench", "system": {{"kind": "henon-heiles", "energy": 0.125}},
             "grid": {{"cells": [400, 400], "tile": [20, 20], "mode": "{mode}"}},
@@ -42,7 +49,6 @@ fn main() {
     let dir = tempfile::tempdir().unwrap();
     let store = Store::open(&dir.path().join("bench.db")).unwrap();
     let mut s = Scheduler::new(store, Config::default()).unwrap();
-    let (job, _) = s.submit(&json).unwrap();
     let workers: Vec<String> = (0..8)
         .map(|_| {
             s.register(&v1::RegisterRequest {
@@ -78,34 +84,37 @@ fn main() {
     let (t0, c0) = (Instant::now(), cpu_seconds());
     let (mut outcomes, mut reports) = (0u64, 0u64);
     let mut k = 0;
-    while !s.is_finished(job).unwrap() {
-        if k % group == 0 {
-            s.begin_group().unwrap();
-        }
-        let w = k % workers.len();
-        k += 1;
-        let report = held[w].take().map(|l| {
-            let tile = l.lease.unwrap();
-            outcomes += l.cells.len() as u64;
-            reports += 1;
-            v1::TileReport {
-                lease: Some(tile),
-                outcomes: l.cells.iter().map(|&c| fake(c)).collect(),
-                finished: true,
-                ..Default::default()
+    for _ in 0..jobs {
+        let (job, _) = s.submit(&json).unwrap();
+        while !s.is_finished(job).unwrap() {
+            if k % group == 0 {
+                s.begin_group().unwrap();
             }
-        });
-        let reply = s
-            .poll(&v1::PollRequest {
-                worker_id: workers[w].clone(),
-                free_slots: 1,
-                reports: report.into_iter().collect(),
-                ..Default::default()
-            })
-            .unwrap();
-        held[w] = reply.leases.into_iter().next();
-        if k % group == 0 {
-            s.commit_group().unwrap();
+            let w = k % workers.len();
+            k += 1;
+            let report = held[w].take().map(|l| {
+                let tile = l.lease.unwrap();
+                outcomes += l.cells.len() as u64;
+                reports += 1;
+                v1::TileReport {
+                    lease: Some(tile),
+                    outcomes: l.cells.iter().map(|&c| fake(c)).collect(),
+                    finished: true,
+                    ..Default::default()
+                }
+            });
+            let reply = s
+                .poll(&v1::PollRequest {
+                    worker_id: workers[w].clone(),
+                    free_slots: 1,
+                    reports: report.into_iter().collect(),
+                    ..Default::default()
+                })
+                .unwrap();
+            held[w] = reply.leases.into_iter().next();
+            if k % group == 0 {
+                s.commit_group().unwrap();
+            }
         }
     }
     if k % group != 0 {
@@ -113,7 +122,7 @@ fn main() {
     }
     let (wall, cpu) = (t0.elapsed().as_secs_f64(), cpu_seconds() - c0);
     println!(
-        "mode {mode}, {visited} visited per outcome, {group} polls per transaction: \
+        "mode {mode}, {visited} visited per outcome, {group} polls per transaction, {jobs} jobs: \
          {outcomes} outcomes in {reports} reports, \
          {wall:.2} s wall, {:.0} outcomes/s, {:.1} µs CPU per outcome, {:.2} ms per report",
         outcomes as f64 / wall,

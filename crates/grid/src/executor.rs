@@ -229,16 +229,27 @@ struct CellsFeed<'a> {
 
 impl BatchFeed<2> for CellsFeed<'_> {
     fn next(&mut self, _all_idle: bool) -> Feed<2> {
-        let i = self.cursor.fetch_add(1, Ordering::Relaxed);
-        match self.cells.get(i) {
-            Some(&cell) => {
-                let (q, p) = initial_point(self.grid, cell);
-                Feed::Orbit(i, q, p)
+        loop {
+            let i = self.cursor.fetch_add(1, Ordering::Relaxed);
+            let Some(&cell) = self.cells.get(i) else {
+                return Feed::Done;
+            };
+            if let Some(claims) = self.claims {
+                // Certain or probable to be labelled by another orbit: left without an outcome,
+                // so the ledger's owner integrates it later if it still needs it.
+                if claims.is_claimed(cell) || claims.running_crosser(self.grid, cell).is_some() {
+                    continue;
+                }
+                claims.set_running(cell, true);
             }
-            None => Feed::Done,
+            let (q, p) = initial_point(self.grid, cell);
+            return Feed::Orbit(i, q, p);
         }
     }
     fn finished(&mut self, i: usize, r: OrbitResult<2>) {
+        if let Some(claims) = self.claims {
+            claims.set_running(self.cells[i], false);
+        }
         let o = outcome(
             self.grid,
             self.cell_run,
@@ -251,13 +262,19 @@ impl BatchFeed<2> for CellsFeed<'_> {
     fn on_crossing(&mut self, i: usize, c: &Crossing<2>) {
         if let Some(claims) = self.claims {
             claims.frontier_crossed(self.grid, self.cells[i], c);
+            if let Some(to) = self.grid.cell_of(c.q[1], c.p[1]) {
+                claims.note_crossed(self.cells[i], to);
+            }
         }
     }
     fn cancelled(&mut self, i: usize) -> bool {
-        self.claims.is_some_and(|c| c.is_claimed(self.cells[i]))
+        self.claims.is_some_and(|c| {
+            c.is_claimed(self.cells[i]) || c.probably_labelled(self.grid, self.cells[i])
+        })
     }
-    fn abandoned(&mut self, _i: usize, steps: u64) {
+    fn abandoned(&mut self, i: usize, steps: u64) {
         if let Some(claims) = self.claims {
+            claims.set_running(self.cells[i], false);
             claims.record_abandoned(steps);
         }
     }
