@@ -17,7 +17,7 @@ use crate::orbit::{
     Tracker, ENERGY_CHECK_EVERY,
 };
 use crate::real::{dot, Lanes};
-use crate::section::Crossing;
+use crate::section::{locate_upward_lanes, Crossing};
 use crate::tangent::{EdgeIncrement, Phase, TangentMap};
 
 fn get_lane<const N: usize, const K: usize, const L: usize>(
@@ -248,6 +248,10 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
     let (crossings, early) = (requests.crossings, config.thresholds.early_stop);
     let every_step = requests.energy;
     let mut step = 0u64;
+    // Crossings found but not yet located: located together, one per lane, when L have queued
+    // up or before an orbit with one queued leaves its lane. Each lane's entries are in time
+    // order, so every orbit's crossings are appended in time order.
+    let mut queued = CrossingQueue::<N, L>::new();
 
     loop {
         if !refs.active.iter().any(|&a| a) {
@@ -319,6 +323,7 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
                     None => !exhausted,
                 };
                 if cancel {
+                    queued.flush(map, &mut jobs, feed);
                     if let Some(j) = jobs[l].take() {
                         feed.abandoned(j.id, refs.n[l]);
                     }
@@ -337,18 +342,26 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
         }
         for l in (0..L).filter(|&l| flagged[l]) {
             let job = jobs[l].as_mut().expect("flagged lanes are active");
-            let crossings_before = job.result.crossings.len();
             let (mut sx, mut sinc) = get_lane(&x, &inc, l);
             let qp: [f64; N] = core::array::from_fn(|i| q_prev[i].0[l]);
             let pp: [f64; N] = core::array::from_fn(|i| p_prev[i].0[l]);
             let n = refs.n[l];
-            let stop =
-                job.tracker
-                    .after_step(map, n, &qp, &pp, &mut sx, &mut sinc, &mut job.result);
-            for c in &job.result.crossings[crossings_before..] {
-                feed.on_crossing(job.id, c);
+            let mut crossed = false;
+            let stop = job.tracker.after_step(
+                map,
+                n,
+                &qp,
+                &pp,
+                &mut sx,
+                &mut sinc,
+                &mut job.result,
+                Some(&mut crossed),
+            );
+            if crossed && queued.push(l, qp, pp, (n - 1) as f64 * map.tau()) {
+                queued.flush(map, &mut jobs, feed);
             }
             if stop || n == n_final {
+                queued.flush(map, &mut jobs, feed);
                 let mut j = jobs[l].take().expect("active");
                 j.tracker.finish(n, &sx, &mut j.result);
                 feed.finished(j.id, j.result);
@@ -365,5 +378,52 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
                 set_lane(&mut x, &mut inc, l, &sx, &sinc);
             }
         }
+    }
+}
+
+/// Crossings waiting to be located, at most one batch of `L`.
+struct CrossingQueue<const N: usize, const L: usize> {
+    lane: [usize; L],
+    start: [([f64; N], [f64; N], f64); L],
+    len: usize,
+}
+
+impl<const N: usize, const L: usize> CrossingQueue<N, L> {
+    fn new() -> Self {
+        CrossingQueue {
+            lane: [0; L],
+            start: [([0.0; N], [0.0; N], 0.0); L],
+            len: 0,
+        }
+    }
+
+    /// Queues the crossing in the step of lane `l` that started at (q, p, t); true when the
+    /// queue is full.
+    fn push(&mut self, l: usize, q: [f64; N], p: [f64; N], t: f64) -> bool {
+        self.lane[self.len] = l;
+        self.start[self.len] = (q, p, t);
+        self.len += 1;
+        self.len == L
+    }
+
+    /// Locates every queued crossing and hands it to its orbit and the feed.
+    fn flush<H: Hamiltonian<N>, const K: usize>(
+        &mut self,
+        map: &TangentMap<'_, H>,
+        jobs: &mut [Option<Job<'_, H, N, K>>; L],
+        feed: &mut impl BatchFeed<N>,
+    ) {
+        if self.len == 0 {
+            return;
+        }
+        let found = locate_upward_lanes::<H, N, L>(map, &self.start[..self.len]);
+        for (k, c) in found.iter().take(self.len).enumerate() {
+            let job = jobs[self.lane[k]]
+                .as_mut()
+                .expect("queued lanes are active");
+            job.result.crossings.push(*c);
+            feed.on_crossing(job.id, c);
+        }
+        self.len = 0;
     }
 }

@@ -317,7 +317,7 @@ pub fn integrate_into<H: Hamiltonian<N>, const N: usize, const K: usize>(
         stepping.advance();
         n += 1;
         let (x, inc) = stepping.parts_mut();
-        if tracker.after_step(map, n, &q_prev, &p_prev, x, inc, out) {
+        if tracker.after_step(map, n, &q_prev, &p_prev, x, inc, out, None) {
             break;
         }
     }
@@ -391,7 +391,9 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
 
     /// Bookkeeping on the synchronised state `x` after step `n`, which started at
     /// (`q_prev`, `p_prev`). Rescales deviation vectors (and the pending increment `inc`) in
-    /// place. Returns true when the orbit stops here.
+    /// place. Returns true when the orbit stops here. With `defer_crossing`, a crossing in this
+    /// step is not located but flagged there, for the caller to locate with
+    /// [`locate_upward`] (or its lane-wise twin) and append to `out.crossings`.
     #[allow(clippy::too_many_arguments)]
     #[inline]
     pub(crate) fn after_step<const N: usize>(
@@ -403,6 +405,7 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
         x: &mut Phase<f64, N, K>,
         inc: &mut EdgeIncrement<f64, N, K>,
         out: &mut OrbitResult<N>,
+        defer_crossing: Option<&mut bool>,
     ) -> bool
     where
         H: Hamiltonian<N>,
@@ -439,9 +442,15 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
             }
         }
         if self.requests.crossings && q_prev[0] < 0.0 && x.q[0] >= 0.0 {
-            let t_prev = (n - 1) as f64 * self.tau;
-            out.crossings
-                .push(locate_upward(map, q_prev, p_prev, t_prev));
+            match defer_crossing {
+                // The batched driver locates several lanes' crossings together.
+                Some(deferred) => *deferred = true,
+                None => {
+                    let t_prev = (n - 1) as f64 * self.tau;
+                    out.crossings
+                        .push(locate_upward(map, q_prev, p_prev, t_prev));
+                }
+            }
         }
         let th = self.thresholds;
         if self.requests.energy || n.is_multiple_of(ENERGY_CHECK_EVERY) || n == self.n_final {

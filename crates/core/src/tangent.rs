@@ -9,6 +9,7 @@
 //! synchronised at t = nτ for indicators, crossings and output — and once to open step n + 1.
 
 use crate::hamiltonian::Hamiltonian;
+use crate::real::Lanes;
 use crate::real::Real;
 use crate::scheme::{Op, Scheme};
 
@@ -311,6 +312,109 @@ impl<'h, H> TangentMap<'h, H> {
             dp: [],
         };
         self.step(&mut x, h);
+        *q = x.q;
+        *p = x.p;
+    }
+
+    /// How many of one step's sub-maps move q: all but a final kick, which changes p only.
+    fn ops_moving_q(&self) -> usize {
+        match self.ops.last() {
+            Some(Op::Kick { .. }) => self.ops.len() - 1,
+            _ => self.ops.len(),
+        }
+    }
+
+    /// The first part of [`TangentMap::orbit_step`]: every sub-map up to the last one that
+    /// moves q, so q is final (a root search on q1 needs nothing more).
+    pub(crate) fn orbit_step_q<const N: usize>(&self, q: &mut [f64; N], p: &mut [f64; N], h: f64)
+    where
+        H: Hamiltonian<N>,
+    {
+        self.orbit_ops(q, p, h, 0..self.ops_moving_q());
+    }
+
+    /// The rest of [`TangentMap::orbit_step`] after [`TangentMap::orbit_step_q`]: together they
+    /// perform exactly the operations of the whole step.
+    pub(crate) fn orbit_step_rest<const N: usize>(&self, q: &mut [f64; N], p: &mut [f64; N], h: f64)
+    where
+        H: Hamiltonian<N>,
+    {
+        self.orbit_ops(q, p, h, self.ops_moving_q()..self.ops.len());
+    }
+
+    /// [`TangentMap::orbit_step_q`] for `L` orbits with their own step sizes, one per SIMD
+    /// lane, each lane performing exactly the scalar operations. Returns false, with `q` and
+    /// `p` in an unspecified state, when the lanes would take different code paths (a scaled
+    /// coefficient that is zero in some lanes only: h = 0 or underflow); the caller then steps
+    /// the lanes one by one.
+    pub(crate) fn orbit_step_q_lanes<const N: usize, const L: usize>(
+        &self,
+        q: &mut [Lanes<L>; N],
+        p: &mut [Lanes<L>; N],
+        h: &[f64; L],
+    ) -> bool
+    where
+        H: Hamiltonian<N>,
+    {
+        let lanes = |f: &dyn Fn(f64) -> f64| Lanes::<L>::from_fn(|l| f(h[l]));
+        let same = |x: &Lanes<L>| x.0.iter().all(|&v| (v != 0.0) == (x.0[0] != 0.0));
+        for &op in &self.ops[..self.ops_moving_q()] {
+            match op {
+                Op::Drift(a) => {
+                    let a = lanes(&|h| a * h);
+                    for i in 0..N {
+                        q[i] = p[i].mul_add(a, q[i]);
+                    }
+                }
+                Op::Kick { b, gamma } => {
+                    let (b, c) = (lanes(&|h| b * h), lanes(&|h| gamma * h * h * h));
+                    if !same(&b) || !same(&c) {
+                        return false;
+                    }
+                    let (kick, correct) = (b.0[0] != 0.0, c.0[0] != 0.0);
+                    if !correct {
+                        // SubMap::Kick(b), or Corrector(0) taken as a kick by −0.
+                        let nb = -b;
+                        let g = self.ham.grad(q);
+                        for i in 0..N {
+                            p[i] = g[i].mul_add(nb, p[i]);
+                        }
+                    } else {
+                        let mut force = [Lanes::splat(0.0); N];
+                        if kick {
+                            let nb = -b;
+                            let g = self.ham.grad(q);
+                            force = core::array::from_fn(|i| nb * g[i]);
+                        }
+                        let gk = self.ham.corrector_grad(q);
+                        for i in 0..N {
+                            p[i] += gk[i].mul_add(c, force[i]);
+                        }
+                    }
+                }
+            }
+        }
+        true
+    }
+
+    fn orbit_ops<const N: usize>(
+        &self,
+        q: &mut [f64; N],
+        p: &mut [f64; N],
+        h: f64,
+        range: core::ops::Range<usize>,
+    ) where
+        H: Hamiltonian<N>,
+    {
+        let mut x: Phase<f64, N, 0> = Phase {
+            q: *q,
+            p: *p,
+            dq: [],
+            dp: [],
+        };
+        for &op in &self.ops[range] {
+            apply(self.ham, &mut x, SubMap::scaled(op, h));
+        }
         *q = x.q;
         *p = x.p;
     }
