@@ -162,14 +162,32 @@ impl Claims {
     fn frontier_crossed(&self, grid: &Grid, from: u32, c: &Crossing<2>) {
         if self.is_frontier(from) {
             if let Some(cell) = grid.cell_of(c.q[1], c.p[1]) {
-                self.claimed[cell as usize].store(true, Ordering::Relaxed);
+                self.claim_crossed(cell);
             }
         }
     }
 
     /// The running orbit of cell `from` crossed `cell`.
-    fn note_crossed(&self, from: u32, cell: u32) {
-        self.crossed_by[cell as usize].fetch_min(self.position[from as usize], Ordering::Relaxed);
+    /// Returns false when this orbit had already noted the cell. Read before writing: a regular
+    /// orbit crosses the same few dozen cells a thousand times, and a read-modify-write on a
+    /// cache line the other threads read costs more than the rest of the bookkeeping.
+    fn note_crossed(&self, from: u32, cell: u32) -> bool {
+        let pos = self.position[from as usize];
+        let by = &self.crossed_by[cell as usize];
+        let seen = by.load(Ordering::Relaxed);
+        if seen > pos {
+            by.fetch_min(pos, Ordering::Relaxed);
+        }
+        seen != pos
+    }
+
+    /// Marks a cell as certain to be labelled (read first, for the reason given at
+    /// [`Claims::note_crossed`]).
+    fn claim_crossed(&self, cell: u32) {
+        let c = &self.claimed[cell as usize];
+        if !c.load(Ordering::Relaxed) {
+            c.store(true, Ordering::Relaxed);
+        }
     }
 
     /// The cell of the earliest orbit seen crossing `cell` while running, if it lies before the
@@ -376,12 +394,22 @@ struct LedgerFeed<'a, P> {
     shared: &'a Mutex<Shared<P>>,
     /// The cells each of this driver's running orbits has crossed while not the frontier
     /// orbit: claimed as soon as it becomes the frontier (None after that: it claims directly).
-    crossed: Vec<(u32, Option<Vec<u32>>)>,
+    crossed: Vec<Crossed>,
+}
+
+/// What one running orbit of a [`LedgerFeed`] has crossed.
+struct Crossed {
+    cell: u32,
+    /// Cells crossed while not the frontier orbit (None once it is).
+    cells: Option<Vec<u32>>,
+    /// Cells already handled, direct-mapped: a regular orbit crosses the same few dozen
+    /// cells a thousand times, and each skipped repeat saves reads of shared arrays.
+    recent: [u32; 64],
 }
 
 impl<P> LedgerFeed<'_, P> {
     fn forget(&mut self, cell: u32) {
-        self.crossed.retain(|(c, _)| *c != cell);
+        self.crossed.retain(|c| c.cell != cell);
     }
 }
 
@@ -415,7 +443,11 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
             cell
         };
         if let Some(c) = cell {
-            self.crossed.push((c, Some(Vec::new())));
+            self.crossed.push(Crossed {
+                cell: c,
+                cells: Some(Vec::new()),
+                recent: [u32::MAX; 64],
+            });
         }
         match cell {
             Some(c) => {
@@ -453,16 +485,25 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
             return;
         };
         let claims = self.claims;
-        let Some((_, list)) = self.crossed.iter_mut().find(|(c, _)| *c == from) else {
+        let Some(orbit) = self.crossed.iter_mut().find(|c| c.cell == from) else {
             return;
         };
-        if claims.is_frontier(from) {
-            for v in list.take().into_iter().flatten().chain([to]) {
-                claims.claimed[v as usize].store(true, Ordering::Relaxed);
+        let frontier = claims.is_frontier(from);
+        let slot = &mut orbit.recent[to as usize % 64];
+        // A repeat needs nothing, unless the orbit has just become the frontier and has its
+        // earlier crossings to claim.
+        if *slot == to && (orbit.cells.is_none() || !frontier) {
+            return;
+        }
+        *slot = to;
+        if frontier {
+            for v in orbit.cells.take().into_iter().flatten().chain([to]) {
+                claims.claim_crossed(v);
             }
-        } else if let Some(list) = list {
-            list.push(to);
-            claims.note_crossed(from, to);
+        } else if let Some(list) = &mut orbit.cells {
+            if claims.note_crossed(from, to) && !list.contains(&to) {
+                list.push(to);
+            }
         }
     }
     fn cancelled(&mut self, cell: usize) -> bool {
