@@ -133,15 +133,93 @@ pub fn integrate_batch<H: Hamiltonian<N>, const N: usize, const K: usize, const 
     integrate_feed::<H, N, K, L>(map, config, requests, &mut feed)
 }
 
-/// The lanes' state besides the phase point: what the vectorised screening compares against.
-struct LaneRefs<const L: usize> {
-    /// Initial energy, and the scale |ΔH| is divided by (as in the tracker).
+/// What every lane's orbit is integrated with.
+struct Setup<'a, 'h, H, const N: usize, const K: usize> {
+    map: &'a TangentMap<'h, H>,
+    config: &'a OrbitConfig,
+    requests: &'a Requests,
+    /// The initial deviation vectors (δq, δp).
+    initial: ([[f64; N]; K], [[f64; N]; K]),
+}
+
+/// The lanes: their phase points, the orbits in them, and what the vectorised screening
+/// compares against.
+struct LaneState<'h, H, const N: usize, const K: usize, const L: usize> {
+    x: Phase<Lanes<L>, N, K>,
+    inc: EdgeIncrement<Lanes<L>, N, K>,
+    jobs: [Option<Job<'h, H, N, K>>; L],
+    /// Initial energy of each lane's orbit.
     h0: Lanes<L>,
-    /// Half the energy-drift limit times the scale: a conservative screen for the tracker's
-    /// check (a spurious flag costs one scalar pass that does nothing).
+    /// Half the energy-drift limit times the orbit's energy scale: a conservative screen for
+    /// the tracker's check (a spurious flag costs one scalar pass that does nothing).
     drift_screen: [f64; L],
     active: [bool; L],
+    /// Steps done by each lane's orbit.
     n: [u64; L],
+    /// The feed said Done.
+    exhausted: bool,
+}
+
+impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
+    LaneState<'h, H, N, K, L>
+{
+    fn new(map: &TangentMap<'h, H>) -> Self {
+        let x = Phase::zero();
+        LaneState {
+            inc: map.edge_increment(&x),
+            x,
+            jobs: core::array::from_fn(|_| None),
+            h0: Lanes([0.0; L]),
+            drift_screen: [0.0; L],
+            active: [false; L],
+            n: [0; L],
+            exhausted: false,
+        }
+    }
+
+    /// Puts the feed's next orbit (if any) into lane `l`, whose orbit has left; an empty lane
+    /// holds zeros and is never flagged (its `active` is false).
+    fn fill(
+        &mut self,
+        l: usize,
+        all_idle: bool,
+        setup: &Setup<'_, 'h, H, N, K>,
+        feed: &mut impl BatchFeed<N>,
+    ) {
+        let next = if self.exhausted {
+            Feed::Done
+        } else {
+            feed.next(all_idle)
+        };
+        let map = setup.map;
+        let (sx, job) = match next {
+            Feed::Orbit(id, q, p) => {
+                let (dq, dp) = setup.initial;
+                let sx = Phase { q, p, dq, dp };
+                let mut result = OrbitResult::empty();
+                let mut tracker = Tracker::new(map, &sx, setup.config, setup.requests);
+                tracker.begin(&mut result);
+                let h0 = map.hamiltonian().energy(&q, &p);
+                let scale = if h0.abs() > 1e-300 { h0.abs() } else { 1.0 };
+                self.h0.0[l] = h0;
+                self.drift_screen[l] = 0.5 * setup.config.thresholds.energy_drift * scale;
+                let job = Job {
+                    id,
+                    tracker,
+                    result,
+                };
+                (sx, Some(job))
+            }
+            Feed::Wait | Feed::Done => {
+                self.exhausted |= next == Feed::Done;
+                (Phase::zero(), None)
+            }
+        };
+        set_lane(&mut self.x, &mut self.inc, l, &sx, &map.edge_increment(&sx));
+        self.active[l] = job.is_some();
+        self.n[l] = 0;
+        self.jobs[l] = job;
+    }
 }
 
 /// Integrates the orbits `feed` supplies, `L` at a time in SIMD lanes, each exactly as
@@ -170,78 +248,15 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
         }
     }
     let ham = map.hamiltonian();
-    let (dq0, dp0) = initial_vectors::<N, K>(config.deviation);
-    let mut x: Phase<Lanes<L>, N, K> = Phase::zero();
-    let mut inc = map.edge_increment(&x);
-    let mut jobs: [Option<Job<'_, H, N, K>>; L] = core::array::from_fn(|_| None);
-    let mut refs = LaneRefs::<L> {
-        h0: Lanes([0.0; L]),
-        drift_screen: [0.0; L],
-        active: [false; L],
-        n: [0; L],
+    let setup = Setup {
+        map,
+        config,
+        requests,
+        initial: initial_vectors::<N, K>(config.deviation),
     };
-    let mut exhausted = false;
-
-    // Puts the feed's next orbit (if any) into lane `l`; an empty lane holds zeros and is never
-    // flagged (its `active` is false).
-    let fill = |l: usize,
-                all_idle: bool,
-                exhausted: &mut bool,
-                feed: &mut dyn FnMut(bool) -> Feed<N>,
-                x: &mut Phase<Lanes<L>, N, K>,
-                inc: &mut EdgeIncrement<Lanes<L>, N, K>,
-                refs: &mut LaneRefs<L>|
-     -> Option<Job<'_, H, N, K>> {
-        let next = if *exhausted {
-            Feed::Done
-        } else {
-            feed(all_idle)
-        };
-        let (sx, job) = match next {
-            Feed::Orbit(id, q, p) => {
-                let sx = Phase {
-                    q,
-                    p,
-                    dq: dq0,
-                    dp: dp0,
-                };
-                let mut result = OrbitResult::empty();
-                let mut tracker = Tracker::new(map, &sx, config, requests);
-                tracker.begin(&mut result);
-                let h0 = ham.energy(&q, &p);
-                let scale = if h0.abs() > 1e-300 { h0.abs() } else { 1.0 };
-                refs.h0.0[l] = h0;
-                refs.drift_screen[l] = 0.5 * config.thresholds.energy_drift * scale;
-                (
-                    sx,
-                    Some(Job {
-                        id,
-                        tracker,
-                        result,
-                    }),
-                )
-            }
-            Feed::Wait | Feed::Done => {
-                *exhausted |= next == Feed::Done;
-                (Phase::zero(), None)
-            }
-        };
-        set_lane(x, inc, l, &sx, &map.edge_increment(&sx));
-        refs.active[l] = job.is_some();
-        refs.n[l] = 0;
-        job
-    };
-
-    for (l, job) in jobs.iter_mut().enumerate() {
-        *job = fill(
-            l,
-            false,
-            &mut exhausted,
-            &mut |a| feed.next(a),
-            &mut x,
-            &mut inc,
-            &mut refs,
-        );
+    let mut st = LaneState::<H, N, K, L>::new(map);
+    for l in 0..L {
+        st.fill(l, false, &setup, feed);
     }
     let r2_max = escape_radius2(ham, config);
     let factor = alignment_factor(config.thresholds.chaotic);
@@ -254,52 +269,36 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
     let mut queued = CrossingQueue::<N, L>::new();
 
     loop {
-        if !refs.active.iter().any(|&a| a) {
-            if exhausted {
+        if !st.active.iter().any(|&a| a) {
+            if st.exhausted {
                 return;
             }
-            jobs[0] = fill(
-                0,
-                true,
-                &mut exhausted,
-                &mut |a| feed.next(a),
-                &mut x,
-                &mut inc,
-                &mut refs,
-            );
-            for (l, job) in jobs.iter_mut().enumerate().skip(1) {
-                if refs.active[0] {
-                    *job = fill(
-                        l,
-                        false,
-                        &mut exhausted,
-                        &mut |a| feed.next(a),
-                        &mut x,
-                        &mut inc,
-                        &mut refs,
-                    );
+            st.fill(0, true, &setup, feed);
+            for l in 1..L {
+                if st.active[0] {
+                    st.fill(l, false, &setup, feed);
                 }
             }
             continue;
         }
         step += 1;
-        let (q_prev, p_prev) = (x.q, x.p);
-        map.advance(&mut x, &mut inc);
+        let (q_prev, p_prev) = (st.x.q, st.x.p);
+        map.advance(&mut st.x, &mut st.inc);
 
         // Vectorised screening: which lanes need the scalar bookkeeping this step? Every
         // condition under which `Tracker::after_step` acts must raise the flag.
-        let r2 = dot(&x.q, &x.q);
+        let r2 = dot(&st.x.q, &st.x.q);
         let n2: [Lanes<L>; K] =
-            core::array::from_fn(|k| dot(&x.dq[k], &x.dq[k]) + dot(&x.dp[k], &x.dp[k]));
-        let c = dot(&x.dq[0], &x.dq[1]) + dot(&x.dp[0], &x.dp[1]);
+            core::array::from_fn(|k| dot(&st.x.dq[k], &st.x.dq[k]) + dot(&st.x.dp[k], &st.x.dp[k]));
+        let c = dot(&st.x.dq[0], &st.x.dq[1]) + dot(&st.x.dp[0], &st.x.dp[1]);
         let mut energy_due = [false; L];
         for l in 0..L {
-            refs.n[l] += 1;
+            st.n[l] += 1;
             energy_due[l] =
-                every_step | refs.n[l].is_multiple_of(ENERGY_CHECK_EVERY) | (refs.n[l] >= n_final);
+                every_step | st.n[l].is_multiple_of(ENERGY_CHECK_EVERY) | (st.n[l] >= n_final);
         }
         let dh = if energy_due.iter().any(|&d| d) {
-            ham.energy(&x.q, &x.p) - refs.h0
+            ham.energy(&st.x.q, &st.x.p) - st.h0
         } else {
             Lanes([0.0; L])
         };
@@ -307,45 +306,37 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
         // `!(a <= b)` is true for NaN too, which is the point.
         #[allow(clippy::neg_cmp_op_on_partial_ord)]
         for l in 0..L {
-            let mut f = energy_due[l] & !(dh.0[l].abs() <= refs.drift_screen[l]);
-            f |= every_step | (refs.n[l] >= n_final) | !(r2.0[l] <= r2_max);
+            let mut f = energy_due[l] & !(dh.0[l].abs() <= st.drift_screen[l]);
+            f |= every_step | (st.n[l] >= n_final) | !(r2.0[l] <= r2_max);
             for n2k in &n2 {
                 f |= !in_band(n2k.0[l]);
             }
-            f |= crossings & (q_prev[0].0[l] < 0.0) & (x.q[0].0[l] >= 0.0);
+            f |= crossings & (q_prev[0].0[l] < 0.0) & (st.x.q[0].0[l] >= 0.0);
             f |= early & (c.0[l] * c.0[l] >= n2[0].0[l] * n2[1].0[l] * factor);
-            flagged[l] = f & refs.active[l];
+            flagged[l] = f & st.active[l];
         }
         if step.is_multiple_of(CANCEL_POLL) {
             for l in 0..L {
-                let cancel = match jobs[l].as_ref() {
+                let cancel = match st.jobs[l].as_ref() {
                     Some(j) => feed.cancelled(j.id),
-                    None => !exhausted,
+                    None => !st.exhausted,
                 };
                 if cancel {
-                    queued.flush(map, &mut jobs, feed);
-                    if let Some(j) = jobs[l].take() {
-                        feed.abandoned(j.id, refs.n[l]);
+                    queued.flush(map, &mut st.jobs, feed);
+                    if let Some(j) = st.jobs[l].take() {
+                        feed.abandoned(j.id, st.n[l]);
                     }
-                    jobs[l] = fill(
-                        l,
-                        false,
-                        &mut exhausted,
-                        &mut |a| feed.next(a),
-                        &mut x,
-                        &mut inc,
-                        &mut refs,
-                    );
+                    st.fill(l, false, &setup, feed);
                     flagged[l] = false;
                 }
             }
         }
         for l in (0..L).filter(|&l| flagged[l]) {
-            let job = jobs[l].as_mut().expect("flagged lanes are active");
-            let (mut sx, mut sinc) = get_lane(&x, &inc, l);
+            let job = st.jobs[l].as_mut().expect("flagged lanes are active");
+            let (mut sx, mut sinc) = get_lane(&st.x, &st.inc, l);
             let qp: [f64; N] = core::array::from_fn(|i| q_prev[i].0[l]);
             let pp: [f64; N] = core::array::from_fn(|i| p_prev[i].0[l]);
-            let n = refs.n[l];
+            let n = st.n[l];
             let mut crossed = false;
             let stop = job.tracker.after_step(
                 map,
@@ -358,24 +349,16 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
                 Some(&mut crossed),
             );
             if crossed && queued.push(l, qp, pp, (n - 1) as f64 * map.tau()) {
-                queued.flush(map, &mut jobs, feed);
+                queued.flush(map, &mut st.jobs, feed);
             }
             if stop || n == n_final {
-                queued.flush(map, &mut jobs, feed);
-                let mut j = jobs[l].take().expect("active");
+                queued.flush(map, &mut st.jobs, feed);
+                let mut j = st.jobs[l].take().expect("active");
                 j.tracker.finish(n, &sx, &mut j.result);
                 feed.finished(j.id, j.result);
-                jobs[l] = fill(
-                    l,
-                    false,
-                    &mut exhausted,
-                    &mut |a| feed.next(a),
-                    &mut x,
-                    &mut inc,
-                    &mut refs,
-                );
+                st.fill(l, false, &setup, feed);
             } else {
-                set_lane(&mut x, &mut inc, l, &sx, &sinc);
+                set_lane(&mut st.x, &mut st.inc, l, &sx, &sinc);
             }
         }
     }

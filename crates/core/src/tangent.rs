@@ -305,15 +305,7 @@ impl<'h, H> TangentMap<'h, H> {
     where
         H: Hamiltonian<N>,
     {
-        let mut x: Phase<f64, N, 0> = Phase {
-            q: *q,
-            p: *p,
-            dq: [],
-            dp: [],
-        };
-        self.step(&mut x, h);
-        *q = x.q;
-        *p = x.p;
+        self.orbit_ops(q, p, h, 0..self.ops.len());
     }
 
     /// How many of one step's sub-maps move q: all but a final kick, which changes p only.
