@@ -16,7 +16,6 @@ use salient_core::run::{run_orbit, MethodRun};
 use salient_core::section::on_section;
 use salient_core::section::Crossing;
 use salient_core::{HenonHeiles, TangentMap};
-use std::collections::HashSet;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Mutex;
 
@@ -198,9 +197,7 @@ impl Claims {
             return None;
         }
         let from = grid.canonical()[by as usize];
-        self.running[from as usize]
-            .load(Ordering::Relaxed)
-            .then_some(from)
+        self.is_running(from).then_some(from)
     }
 
     /// Whether the orbit of `cell` is probably wasted: a running orbit before it crossed it,
@@ -212,6 +209,11 @@ impl Claims {
             !self.claimed[from as usize].load(Ordering::Relaxed)
                 && self.running_crosser(grid, from).is_none()
         })
+    }
+
+    /// Whether the cell's orbit runs in some lane.
+    fn is_running(&self, cell: u32) -> bool {
+        self.running[cell as usize].load(Ordering::Relaxed)
     }
 
     fn set_running(&self, cell: u32, running: bool) {
@@ -379,8 +381,6 @@ pub fn integrate_cells_with(
 /// What the embedded fast-PSS engine shares between its drivers.
 struct Shared<P> {
     ledger: Ledger,
-    /// Cells whose orbit runs in some lane.
-    in_flight: HashSet<u32>,
     progress: P,
 }
 
@@ -416,10 +416,8 @@ impl<P> LedgerFeed<'_, P> {
 impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
     fn next(&mut self, all_idle: bool) -> Feed<2> {
         let cell = {
-            let mut g = self.shared.lock().expect("ledger lock");
-            let Shared {
-                ledger, in_flight, ..
-            } = &mut *g;
+            let g = self.shared.lock().expect("ledger lock");
+            let ledger = &g.ledger;
             if ledger.done() {
                 return Feed::Done;
             }
@@ -429,7 +427,7 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
             // cell is never skipped (nothing before it runs), so this cannot stall.
             let cell = ledger
                 .needed(1, &|c| {
-                    in_flight.contains(&c)
+                    claims.is_running(c)
                         || claims.is_claimed(c)
                         || ledger.is_claimed(c)
                         || claims.running_crosser(grid, c).is_some()
@@ -437,7 +435,7 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
                 .first()
                 .copied();
             if let Some(c) = cell {
-                in_flight.insert(c);
+                // Under the lock, so no other lane takes the cell too.
                 claims.set_running(c, true);
             }
             cell
@@ -466,16 +464,12 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
     fn finished(&mut self, cell: usize, r: OrbitResult<2>) {
         let cell = cell as u32;
         self.forget(cell);
-        self.claims.set_running(cell, false);
         let o = outcome(self.grid, self.cell_run, self.checkpoints, cell, &r);
         let mut g = self.shared.lock().expect("ledger lock");
-        let Shared {
-            ledger,
-            in_flight,
-            progress,
-        } = &mut *g;
+        let Shared { ledger, progress } = &mut *g;
         ledger.offer(o);
-        in_flight.remove(&cell);
+        // Under the lock: the cell is either running or has its outcome in the ledger.
+        self.claims.set_running(cell, false);
         self.claims.sync(ledger);
         progress(ledger);
     }
@@ -513,8 +507,6 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
         self.forget(cell as u32);
         self.claims.set_running(cell as u32, false);
         self.claims.record_abandoned(steps);
-        let mut g = self.shared.lock().expect("ledger lock");
-        g.in_flight.remove(&(cell as u32));
     }
 }
 
@@ -550,7 +542,6 @@ pub fn run_embedded(
     let claims = Claims::new(grid);
     let shared = Mutex::new(Shared {
         ledger: Ledger::new(grid, mode),
-        in_flight: HashSet::new(),
         progress,
     });
     let Method::TangentMap(scheme) = &cell_run.run.method else {
