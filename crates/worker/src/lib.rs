@@ -1,5 +1,4 @@
-//! The worker: registers with a coordinator, keeps a few tile leases (enough to keep its cores
-//! busy), integrates each lease's cells with the grid's tile executor on a rayon pool — the
+//! The worker: registers with a coordinator, keeps one or a few tile leases, integrates each lease's cells with the grid's tile executor on a rayon pool — the
 //! same code `salient run` uses — and reports outcomes chunk by chunk in its polls. Reports stay
 //! in an outbox until acknowledged, so they survive a coordinator restart; on drain it finishes
 //! the lease in progress, releases the ones not started, and deregisters.
@@ -28,8 +27,8 @@ pub struct Options {
     pub token: Option<String>,
     /// PEM of the certificate authority that signed the coordinator's certificate.
     pub tls_ca: Option<Vec<u8>>,
-    /// Leases held at once: one in progress and the rest ready, so the pool never waits on
-    /// the network.
+    /// Leases held at once: one in progress and the rest ready, so the pool need not wait on
+    /// the network (at the price of more speculation in fast PSS).
     pub max_leases: usize,
 }
 
