@@ -64,10 +64,9 @@ pub struct WorkerArgs {
     /// Name shown in the coordinator's logs (default: host name and process id).
     #[arg(long)]
     name: Option<String>,
-    /// Tile leases held at once (one running, the rest ready). More keep the threads busy
-    /// across round trips but, in fast PSS, take cells before the outcomes that would claim
-    /// them arrive: one measured faster on 400×400 at t = 1e4 and 1e5 (BENCHMARKS.md).
-    #[arg(long, default_value_t = 1)]
+    /// Tile leases held at once (one running, the rest ready); fast-PSS leases are taken one
+    /// at a time whatever this says (a second would speculate ahead of the claims).
+    #[arg(long, default_value_t = 2)]
     leases: usize,
 }
 
