@@ -79,8 +79,8 @@ pub enum Feed<const N: usize> {
 
 /// The batched driver's source of orbits and sink of results, with hooks that let the caller
 /// watch crossings as they are found and abandon orbits it no longer needs (the fast-PSS
-/// engine abandons orbits whose cell is certain to be labelled by another). Hooks never change
-/// the results of the orbits that complete.
+/// engine abandons orbits whose cell another orbit will, or very likely will, label). Hooks
+/// never change the results of the orbits that complete.
 pub trait BatchFeed<const N: usize> {
     /// The next orbit for a free lane. `all_idle` is true when no lane has an orbit: the feed
     /// may then block until it has one or knows there are none.
