@@ -1,5 +1,6 @@
-//! The worker: registers with a coordinator, keeps one or a few tile leases, integrates each lease's cells with the grid's tile executor on a rayon pool — the
-//! same code `salient run` uses — and reports outcomes chunk by chunk in its polls. Reports stay
+//! The worker: registers with a coordinator, keeps one or a few tile leases, integrates each
+//! lease's cells with the grid's tile executor on a rayon pool — the same code `salient run`
+//! uses — and reports outcomes chunk by chunk in its polls. Reports stay
 //! in an outbox until acknowledged, so they survive a coordinator restart; on drain it finishes
 //! the lease in progress, releases the ones not started, and deregisters.
 
