@@ -295,7 +295,19 @@ impl<'h, H> TangentMap<'h, H> {
     where
         H: Hamiltonian<N>,
     {
-        for &op in &self.ops {
+        self.step_ops(x, h, 0..self.ops.len());
+    }
+
+    /// Sub-maps `range` of one unmerged step of size `h`.
+    fn step_ops<T: Real, const N: usize, const K: usize>(
+        &self,
+        x: &mut Phase<T, N, K>,
+        h: f64,
+        range: core::ops::Range<usize>,
+    ) where
+        H: Hamiltonian<N>,
+    {
+        for &op in &self.ops[range] {
             apply(self.ham, x, SubMap::scaled(op, h));
         }
     }
@@ -404,9 +416,7 @@ impl<'h, H> TangentMap<'h, H> {
             dq: [],
             dp: [],
         };
-        for &op in &self.ops[range] {
-            apply(self.ham, &mut x, SubMap::scaled(op, h));
-        }
+        self.step_ops(&mut x, h, range);
         *q = x.q;
         *p = x.p;
     }

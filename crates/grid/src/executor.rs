@@ -156,16 +156,6 @@ impl Claims {
         self.claimed[cell as usize].load(Ordering::Relaxed) && !self.is_frontier(cell)
     }
 
-    /// Orbit `from` crossed the section at `c`: if it is the frontier orbit, the cell it crossed
-    /// is certain to be labelled by it.
-    fn frontier_crossed(&self, grid: &Grid, from: u32, c: &Crossing<2>) {
-        if self.is_frontier(from) {
-            if let Some(cell) = grid.cell_of(c.q[1], c.p[1]) {
-                self.claim_crossed(cell);
-            }
-        }
-    }
-
     /// The running orbit of cell `from` crossed `cell`.
     /// Returns false when this orbit had already noted the cell. Read before writing: a regular
     /// orbit crosses the same few dozen cells a thousand times, and a read-modify-write on a
@@ -280,12 +270,14 @@ impl BatchFeed<2> for CellsFeed<'_> {
         self.done.push((i, o));
     }
     fn on_crossing(&mut self, i: usize, c: &Crossing<2>) {
-        if let Some(claims) = self.claims {
-            claims.frontier_crossed(self.grid, self.cells[i], c);
-            if let Some(to) = self.grid.cell_of(c.q[1], c.p[1]) {
-                claims.note_crossed(self.cells[i], to);
-            }
+        let (Some(claims), Some(to)) = (self.claims, self.grid.cell_of(c.q[1], c.p[1])) else {
+            return;
+        };
+        let from = self.cells[i];
+        if claims.is_frontier(from) {
+            claims.claim_crossed(to);
         }
+        claims.note_crossed(from, to);
     }
     fn cancelled(&mut self, i: usize) -> bool {
         self.claims.is_some_and(|c| {
