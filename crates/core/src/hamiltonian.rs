@@ -68,6 +68,35 @@ pub trait Hamiltonian<const N: usize>: Send + Sync {
         core::array::from_fn(|i| core::array::from_fn(|j| cols[j][i]))
     }
 
+    /// What a kick by `b` combined with a corrector by `c` does at q (`None` stands for a zero
+    /// coefficient, so the caller's static knowledge of which parts exist removes the rest):
+    /// the momentum change −b∇V + c∇K and its Jacobian −b D²V + c D²K, which the tangent map
+    /// applies to every deviation vector. The default composes [`Hamiltonian::grad`],
+    /// [`Hamiltonian::hessian`] and the corrector terms; a system may override it with a fused
+    /// closed form, which matters because this is the bulk of a tangent-map step's arithmetic.
+    #[inline(always)]
+    fn kick_terms<T: Real>(&self, q: &[T; N], b: Option<T>, c: Option<T>) -> KickTerms<T, N> {
+        let zero = T::splat(0.0);
+        let mut force = [zero; N];
+        let mut matrix = [[zero; N]; N];
+        if let Some(b) = b {
+            let nb = -b;
+            let g = self.grad(q);
+            let h = self.hessian(q);
+            force = core::array::from_fn(|i| nb * g[i]);
+            matrix = core::array::from_fn(|i| core::array::from_fn(|j| nb * h[i][j]));
+        }
+        if let Some(c) = c {
+            let gk = self.corrector_grad(q);
+            let hk = self.corrector_hessian(q);
+            force = core::array::from_fn(|i| gk[i].mul_add(c, force[i]));
+            matrix = core::array::from_fn(|i| {
+                core::array::from_fn(|j| hk[i][j].mul_add(c, matrix[i][j]))
+            });
+        }
+        KickTerms { force, matrix }
+    }
+
     /// Distance from the origin beyond which an orbit counts as escaped. Infinite when every
     /// energy surface is bounded.
     fn escape_radius(&self) -> f64 {
@@ -84,6 +113,16 @@ pub trait Hamiltonian<const N: usize>: Send + Sync {
     fn energy<T: Real>(&self, q: &[T; N], p: &[T; N]) -> T {
         T::splat(0.5) * dot(p, p) + self.potential(q)
     }
+}
+
+/// A kick's momentum change and its Jacobian, formed once per kick and applied to the orbit
+/// and to every deviation vector (see [`Hamiltonian::kick_terms`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct KickTerms<T, const N: usize> {
+    /// Added to p.
+    pub force: [T; N],
+    /// Its Jacobian: δp gains matrix·δq.
+    pub matrix: [[T; N]; N],
 }
 
 /// The Hénon–Heiles system: V = ½(q1² + q2²) + q1²q2 − q2³/3. Escape energy 1/6.
@@ -165,6 +204,54 @@ impl Hamiltonian<2> for HenonHeiles {
         let k22 = c(4.0).mul_add(xx, c(12.0).mul_add(yy, c(-12.0).mul_add(y, c(2.0))));
         let k12 = c(4.0) * x * c(2.0).mul_add(y, c(3.0));
         [[k11, k12], [k12, k22]]
+    }
+
+    /// The fused closed form of −b∇V + c∇K and −b D²V + c D²K. With x = q1, y = q2,
+    /// r = x² + y², d = x² − y², α = 2c − b, β = 12c − 2b, γ = 4c (from the closed forms of ∇K
+    /// and D²K checked in the tests below):
+    /// F = (x(α + βy + γr), αy + (6c − b)d + γyr),
+    /// M = [[α + βy + γr + 2γx², x(β + 2γy)], [·, α − βy + γr + 2γy²]].
+    /// About 17 operations against 39 for the composition of the separate terms; a plain kick
+    /// (no corrector) takes the same shape with c = 0 and fewer terms.
+    #[inline(always)]
+    fn kick_terms<T: Real>(&self, q: &[T; 2], b: Option<T>, c: Option<T>) -> KickTerms<T, 2> {
+        let [x, y] = *q;
+        match (b, c) {
+            (Some(b), None) => {
+                let nb = -b;
+                let nb2 = nb + nb;
+                let m11 = nb2.mul_add(y, nb);
+                let m22 = (-nb2).mul_add(y, nb);
+                let m12 = nb2 * x;
+                KickTerms {
+                    force: [x * m11, nb * (x - y).mul_add(x + y, y)],
+                    matrix: [[m11, m12], [m12, m22]],
+                }
+            }
+            (b, Some(c)) => {
+                let b = b.unwrap_or(T::splat(0.0));
+                let two = T::splat(2.0);
+                let alpha = c.mul_add(two, -b);
+                let beta = T::splat(12.0).mul_add(c, -(b + b));
+                let gamma = T::splat(4.0) * c;
+                let gamma2 = T::splat(8.0) * c;
+                let delta = T::splat(6.0).mul_add(c, -b);
+                let (xx, yy) = (x * x, y * y);
+                let (r, d) = (xx + yy, xx - yy);
+                let w = gamma.mul_add(r, beta.mul_add(y, alpha));
+                let m11 = gamma2.mul_add(xx, w);
+                let m22 = gamma2.mul_add(yy, gamma.mul_add(r, (-beta).mul_add(y, alpha)));
+                let m12 = x * gamma2.mul_add(y, beta);
+                KickTerms {
+                    force: [x * w, (gamma * y).mul_add(r, delta.mul_add(d, alpha * y))],
+                    matrix: [[m11, m12], [m12, m22]],
+                }
+            }
+            (None, None) => KickTerms {
+                force: [T::splat(0.0); 2],
+                matrix: [[T::splat(0.0); 2]; 2],
+            },
+        }
     }
 
     fn escape_radius(&self) -> f64 {
@@ -290,6 +377,32 @@ mod tests {
             }
         }
         let h = HenonHeiles;
+        // The fused kick terms against the default composition of the separate terms, for a
+        // plain kick, a plain corrector, both (signs and sizes as in SBAB2C at τ = 0.5 and
+        // beyond), and neither.
+        let coeffs = [
+            (Some(0.25), None),
+            (None, Some(-0.0017)),
+            (Some(0.105662), Some(-0.0017361)),
+            (Some(-1.3), Some(0.8)),
+            (None, None),
+        ];
+        for q in POINTS {
+            for (b, c) in coeffs {
+                let (fused, composed) = (h.kick_terms(&q, b, c), Generic.kick_terms(&q, b, c));
+                let close = |x: f64, y: f64| (x - y).abs() <= 4e-15 * (1.0 + y.abs());
+                for i in 0..2 {
+                    assert!(
+                        close(fused.force[i], composed.force[i]),
+                        "{q:?} {b:?} {c:?}"
+                    );
+                    for j in 0..2 {
+                        let (x, y) = (fused.matrix[i][j], composed.matrix[i][j]);
+                        assert!(close(x, y), "{q:?} {b:?} {c:?} M{i}{j}: {x} vs {y}");
+                    }
+                }
+            }
+        }
         for q in POINTS {
             let (a, b) = (h.corrector_grad(&q), Generic.corrector_grad(&q));
             let (ha, hb) = (h.hessian(&q), Generic.hessian(&q));

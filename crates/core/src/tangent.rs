@@ -125,51 +125,24 @@ impl SubMap {
     }
 }
 
-/// A kick and/or corrector at q: the momentum change −b∇V + c∇K and its Jacobian
-/// M = −b D²V + c D²K, formed once and applied to every deviation vector.
-struct KickTerms<T, const N: usize> {
-    force: [T; N],
-    matrix: [[T; N]; N],
-}
-
+/// A scaled coefficient as [`Hamiltonian::kick_terms`] takes it: `None` when it is zero.
 #[inline(always)]
-fn kick_terms<H: Hamiltonian<N>, T: Real, const N: usize>(
-    ham: &H,
-    q: &[T; N],
-    b: f64,
-    c: f64,
-) -> KickTerms<T, N> {
-    let zero = T::splat(0.0);
-    let mut force = [zero; N];
-    let mut matrix = [[zero; N]; N];
-    if b != 0.0 {
-        let nb = T::splat(-b);
-        let g = ham.grad(q);
-        let h = ham.hessian(q);
-        force = core::array::from_fn(|i| nb * g[i]);
-        matrix = core::array::from_fn(|i| core::array::from_fn(|j| nb * h[i][j]));
-    }
-    if c != 0.0 {
-        let c = T::splat(c);
-        let gk = ham.corrector_grad(q);
-        let hk = ham.corrector_hessian(q);
-        force = core::array::from_fn(|i| gk[i].mul_add(c, force[i]));
-        matrix =
-            core::array::from_fn(|i| core::array::from_fn(|j| hk[i][j].mul_add(c, matrix[i][j])));
-    }
-    KickTerms { force, matrix }
+fn nonzero<T: Real>(v: f64) -> Option<T> {
+    (v != 0.0).then(|| T::splat(v))
 }
 
-/// acc + M·u, accumulated with fused multiply-adds.
+/// acc + M·u, accumulated with fused multiply-adds. Written as loops over a copy rather than
+/// with `array::from_fn`, which the compiler outlines for wide lanes (8 and more), forcing
+/// the whole step's state through memory.
 #[inline(always)]
 fn mat_vec_add<T: Real, const N: usize>(m: &[[T; N]; N], u: &[T; N], acc: &[T; N]) -> [T; N] {
-    core::array::from_fn(|i| {
-        let mut s = acc[i];
+    let mut s = *acc;
+    for i in 0..N {
         for j in 0..N {
-            s = m[i][j].mul_add(u[j], s);
+            s[i] = m[i][j].mul_add(u[j], s[i]);
         }
-        s
-    })
+    }
+    s
 }
 
 #[inline(always)]
@@ -203,23 +176,7 @@ fn kick<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
     b: f64,
     c: f64,
 ) {
-    if c == 0.0 {
-        // A plain kick needs no matrix sums: fold −b straight into the updates.
-        let nb = T::splat(-b);
-        let g = ham.grad(&x.q);
-        let h = ham.hessian(&x.q);
-        for i in 0..N {
-            x.p[i] = g[i].mul_add(nb, x.p[i]);
-        }
-        for k in 0..K {
-            let hv = mat_vec_add(&h, &x.dq[k], &[T::splat(0.0); N]);
-            for i in 0..N {
-                x.dp[k][i] = hv[i].mul_add(nb, x.dp[k][i]);
-            }
-        }
-        return;
-    }
-    let t = kick_terms(ham, &x.q, b, c);
+    let t = ham.kick_terms(&x.q, nonzero(b), nonzero(c));
     for i in 0..N {
         x.p[i] += t.force[i];
     }
@@ -376,24 +333,11 @@ impl<'h, H> TangentMap<'h, H> {
                         return false;
                     }
                     let (kick, correct) = (b.0[0] != 0.0, c.0[0] != 0.0);
-                    if !correct {
-                        // SubMap::Kick(b), or Corrector(0) taken as a kick by −0.
-                        let nb = -b;
-                        let g = self.ham.grad(q);
-                        for i in 0..N {
-                            p[i] = g[i].mul_add(nb, p[i]);
-                        }
-                    } else {
-                        let mut force = [Lanes::splat(0.0); N];
-                        if kick {
-                            let nb = -b;
-                            let g = self.ham.grad(q);
-                            force = core::array::from_fn(|i| nb * g[i]);
-                        }
-                        let gk = self.ham.corrector_grad(q);
-                        for i in 0..N {
-                            p[i] += gk[i].mul_add(c, force[i]);
-                        }
+                    let t = self
+                        .ham
+                        .kick_terms(q, kick.then_some(b), correct.then_some(c));
+                    for i in 0..N {
+                        p[i] += t.force[i];
                     }
                 }
             }
@@ -453,11 +397,15 @@ impl<'h, H> TangentMap<'h, H> {
     where
         H: Hamiltonian<N>,
     {
-        let t = kick_terms(self.ham, &x.q, b, c);
+        let t = self.ham.kick_terms(&x.q, nonzero(b), nonzero(c));
         let zero = [T::splat(0.0); N];
+        let mut dev = [zero; K];
+        for k in 0..K {
+            dev[k] = mat_vec_add(&t.matrix, &x.dq[k], &zero);
+        }
         EdgeIncrement {
             orbit: t.force,
-            dev: core::array::from_fn(|k| mat_vec_add(&t.matrix, &x.dq[k], &zero)),
+            dev,
         }
     }
 
