@@ -1,9 +1,10 @@
 //! ns per step of the tangent-map method: one orbit (latency-bound) and batches of orbits in
-//! SIMD lanes (throughput-bound). Throughput is reported per orbit-step.
+//! SIMD lanes (throughput-bound), on the pinned target level and, where the host has it,
+//! AVX-512. Throughput is reported per orbit-step.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use salient_core::batch::integrate_batch;
-use salient_core::orbit::{integrate, OrbitConfig, Requests};
+use salient_core::batch::{integrate_feed_on, BatchFeed, Feed, Isa};
+use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests};
 use salient_core::section::on_section;
 use salient_core::{HenonHeiles, Scheme, TangentMap};
 use std::hint::black_box;
@@ -35,37 +36,61 @@ fn regular_ics(n: usize) -> Vec<([f64; 2], [f64; 2])> {
         .collect()
 }
 
+/// Sums the SALI of the orbits it hands out, so the work cannot be optimised away.
+struct Sum<'a> {
+    ics: &'a [([f64; 2], [f64; 2])],
+    next: usize,
+    sali: f64,
+}
+
+impl BatchFeed<2> for Sum<'_> {
+    fn next(&mut self, _all_idle: bool) -> Feed<2> {
+        let Some(&(q, p)) = self.ics.get(self.next) else {
+            return Feed::Done;
+        };
+        self.next += 1;
+        Feed::Orbit(self.next - 1, q, p)
+    }
+    fn finished(&mut self, _id: usize, result: OrbitResult<2>) {
+        self.sali += result.sali;
+    }
+}
+
 fn batched<const L: usize>(
-    c: &mut Criterion,
     g: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>,
+    isa: Isa,
 ) {
-    let _ = c;
     let ham = HenonHeiles;
     let map = TangentMap::new(&ham, &Scheme::by_name("sbab2c").unwrap(), 0.05);
     let ics = regular_ics(32);
     let cfg = OrbitConfig::new(0.05, STEPS as f64 * 0.05);
-    g.bench_function(BenchmarkId::new("sbab2c-lanes", L), |b| {
+    let name = match isa {
+        Isa::Pinned => "sbab2c-lanes-pinned",
+        Isa::Avx512 => "sbab2c-lanes-avx512",
+    };
+    g.bench_function(BenchmarkId::new(name, L), |b| {
         b.iter(|| {
-            let mut sum = 0.0;
-            integrate_batch::<_, 2, 2, L>(
-                &map,
-                black_box(&ics),
-                &cfg,
-                &Requests::default(),
-                |_, r| sum += r.sali,
-            );
-            sum
+            let mut feed = Sum {
+                ics: black_box(&ics),
+                next: 0,
+                sali: 0.0,
+            };
+            integrate_feed_on::<_, 2, 2, L>(isa, &map, &cfg, &Requests::default(), &mut feed);
+            feed.sali
         })
     });
 }
 
 fn batch(c: &mut Criterion) {
-    let mut c2 = Criterion::default();
     let mut g = c.benchmark_group("batch");
     g.throughput(Throughput::Elements(STEPS * 32));
-    batched::<1>(&mut c2, &mut g);
-    batched::<4>(&mut c2, &mut g);
-    batched::<8>(&mut c2, &mut g);
+    batched::<1>(&mut g, Isa::Pinned);
+    batched::<4>(&mut g, Isa::Pinned);
+    batched::<8>(&mut g, Isa::Pinned);
+    if Isa::Avx512.available() {
+        batched::<8>(&mut g, Isa::Avx512);
+        batched::<16>(&mut g, Isa::Avx512);
+    }
     g.finish();
 }
 

@@ -481,6 +481,14 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
         self.status != Status::Ok
     }
 
+    /// The step at which the next time-series sample is due (`u64::MAX`: none).
+    pub(crate) fn next_sample_step(&self) -> u64 {
+        self.samples
+            .get(self.next_sample)
+            .copied()
+            .unwrap_or(u64::MAX)
+    }
+
     /// Fills `out` from the final state after `n` steps.
     pub(crate) fn finish<const N: usize>(
         &mut self,

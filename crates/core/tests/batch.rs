@@ -20,6 +20,15 @@ fn same_bits(a: &OrbitResult<2>, b: &OrbitResult<2>) -> bool {
             .map(|&x| f(x))
             .eq(b.gali.iter().map(|&x| f(x)))
         && a.energy_error_max.map(f) == b.energy_error_max.map(f)
+        && a.series.len() == b.series.len()
+        && a.series.iter().zip(&b.series).all(|(x, y)| {
+            [x.t, x.sali, x.mle, x.energy_error].map(f)
+                == [y.t, y.sali, y.mle, y.energy_error].map(f)
+                && x.gali
+                    .iter()
+                    .map(|&g| f(g))
+                    .eq(y.gali.iter().map(|&g| f(g)))
+        })
         && a.crossings.len() == b.crossings.len()
         && a.crossings.iter().zip(&b.crossings).all(|(c, d)| {
             f(c.t) == f(d.t)
@@ -110,6 +119,71 @@ fn batched_lanes_equal_scalar_orbits_bit_for_bit() {
     );
     // More lanes than orbits, and orbits that end before their first step.
     check_varied::<64>("sbab2c", 0.5, 200.0, crossings);
+    // Time series (full-mode checkpoints): the same samples at the same steps.
+    let series = Requests {
+        samples_per_decade: 10,
+        gali: true,
+        ..Requests::default()
+    };
+    check_varied::<4>("sbab2c", 0.5, 1500.0, series);
+    check_varied::<8>("saba2c", 0.1, 1000.0, series);
+}
+
+/// The copy of the driver compiled for AVX-512 gives the pinned copy's bits (on hosts that
+/// have AVX-512; elsewhere there is nothing to compare and the test says so).
+#[test]
+fn the_avx512_driver_equals_the_pinned_one_bit_for_bit() {
+    use salient_core::batch::{integrate_feed_on, BatchFeed, Feed, Isa};
+    struct Collect<'a> {
+        ics: &'a [([f64; 2], [f64; 2])],
+        next: usize,
+        got: Vec<Option<OrbitResult<2>>>,
+    }
+    impl BatchFeed<2> for Collect<'_> {
+        fn next(&mut self, _all_idle: bool) -> Feed<2> {
+            let Some(&(q, p)) = self.ics.get(self.next) else {
+                return Feed::Done;
+            };
+            self.next += 1;
+            Feed::Orbit(self.next - 1, q, p)
+        }
+        fn finished(&mut self, id: usize, result: OrbitResult<2>) {
+            self.got[id] = Some(result);
+        }
+    }
+    if !Isa::Avx512.available() {
+        eprintln!("this host has no AVX-512: only the pinned driver exists here");
+        return;
+    }
+    let ham = HenonHeiles;
+    let ics = ics();
+    let requests = Requests {
+        crossings: true,
+        samples_per_decade: 5,
+        gali: true,
+        ..Requests::default()
+    };
+    for (scheme, tau) in [("sbab2c", 0.05), ("saba2c", 0.5), ("srkn14a", 0.25)] {
+        let map = TangentMap::new(&ham, &Scheme::by_name(scheme).unwrap(), tau);
+        let cfg = OrbitConfig::new(tau, 2000.0);
+        let run = |isa| {
+            let mut feed = Collect {
+                ics: &ics,
+                next: 0,
+                got: vec![None; ics.len()],
+            };
+            integrate_feed_on::<_, 2, 2, 8>(isa, &map, &cfg, &requests, &mut feed);
+            feed.got
+        };
+        let (wide, pinned) = (run(Isa::Avx512), run(Isa::Pinned));
+        for (i, (a, b)) in wide.iter().zip(&pinned).enumerate() {
+            let (a, b) = (a.as_ref().unwrap(), b.as_ref().unwrap());
+            assert!(
+                same_bits(a, b),
+                "{scheme} orbit {i}:\n avx512 {a:?}\n pinned {b:?}"
+            );
+        }
+    }
 }
 
 /// Steps beyond the splitting's stability limit: the energy checks every
