@@ -1,13 +1,13 @@
 //! The tile executor: integrates a list of cells (a tile's unmarked cells, or the next cells of
 //! the embedded frontier) on the current rayon pool and turns each orbit into an [`Outcome`].
-//! Tangent-map methods run `LANES` orbits at a time in the batched stepper; adaptive methods
+//! Tangent-map methods run [`lanes`] orbits at a time in the batched stepper; adaptive methods
 //! one orbit per task. An outcome depends only on its cell, never on scheduling, so any
 //! partition of the work gives the same bits.
 
 use crate::geometry::Grid;
 use crate::ledger::{Ledger, Mode, Outcome};
 use rayon::prelude::*;
-use salient_core::batch::{integrate_feed, BatchFeed, Feed};
+use salient_core::batch::{integrate_feed, integrate_feed_host, BatchFeed, Feed, Isa};
 use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
@@ -19,8 +19,35 @@ use salient_core::{HenonHeiles, TangentMap};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Mutex;
 
-/// Orbits advanced together in one batched stepper.
+/// Orbits advanced together in one batched stepper in fast PSS, on every host, and the unit
+/// in which schedulers size their batches.
 pub const LANES: usize = 4;
+
+/// Orbits advanced together in one batched stepper in `mode`. Full mode takes what suits the
+/// host ([`Isa::lanes`]: 8 with AVX-512). Fast PSS keeps 4 everywhere: the lanes in flight
+/// bound its speculation, and with 8 (3.8 instead of 6.7 ns per orbit-step) the dropped
+/// steps grew by 40–50 % and 400×400 t = 1e4 ran slower at τ = 0.5 and 0.05 (0.44 vs 0.32 s,
+/// 1.33 vs 1.06 s) and only at τ = 0.01 faster (4.2 vs 4.7 s).
+pub fn lanes(mode: Mode) -> usize {
+    match mode {
+        Mode::FastPss => LANES,
+        Mode::Full => Isa::detect().lanes(),
+    }
+}
+
+/// Runs the batched driver with [`lanes`]`(mode)` lanes.
+fn drive(
+    map: &TangentMap<'_, HenonHeiles>,
+    config: &OrbitConfig,
+    requests: &Requests,
+    mode: Mode,
+    feed: &mut impl BatchFeed<2>,
+) {
+    match mode {
+        Mode::FastPss => integrate_feed::<_, 2, 2, LANES>(map, config, requests, feed),
+        Mode::Full => integrate_feed_host::<_, 2, 2>(map, config, requests, feed),
+    }
+}
 
 /// How every cell's orbit is integrated.
 #[derive(Clone, Debug, PartialEq)]
@@ -96,6 +123,10 @@ pub struct Claims {
     crossed_by: Vec<AtomicU32>,
     /// Per cell, whether its orbit is running in some lane.
     running: Vec<AtomicBool>,
+    /// Bumped whenever an orbit stops running (finished or abandoned): only then can a cell
+    /// that a search for work skipped become available, so an idle lane searches again only
+    /// after a bump.
+    stopped: AtomicU64,
     abandoned: AtomicU64,
     abandoned_steps: AtomicU64,
 }
@@ -112,6 +143,7 @@ impl Claims {
                 .map(|_| AtomicU32::new(u32::MAX))
                 .collect(),
             running: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+            stopped: AtomicU64::new(0),
             abandoned: AtomicU64::new(0),
             abandoned_steps: AtomicU64::new(0),
         }
@@ -208,6 +240,9 @@ impl Claims {
 
     fn set_running(&self, cell: u32, running: bool) {
         self.running[cell as usize].store(running, Ordering::Relaxed);
+        if !running {
+            self.stopped.fetch_add(1, Ordering::Relaxed);
+        }
     }
 
     fn record_abandoned(&self, steps: u64) {
@@ -324,10 +359,10 @@ pub fn integrate_cells_with(
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
     match &cell_run.run.method {
-        Method::TangentMap(scheme) if requests.samples_per_decade == 0 => {
+        Method::TangentMap(scheme) => {
             let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
             let cursor = AtomicUsize::new(0);
-            let drivers = rayon::current_num_threads().min(cells.len().div_ceil(LANES));
+            let drivers = rayon::current_num_threads().min(cells.len().div_ceil(lanes(mode)));
             let finished: Vec<(usize, Outcome)> = (0..drivers)
                 .into_par_iter()
                 .flat_map_iter(|_| {
@@ -340,7 +375,7 @@ pub fn integrate_cells_with(
                         claims,
                         done: Vec::new(),
                     };
-                    integrate_feed::<_, 2, 2, LANES>(&map, &cell_run.config, &requests, &mut feed);
+                    drive(&map, &cell_run.config, &requests, mode, &mut feed);
                     feed.done
                 })
                 .collect();
@@ -387,6 +422,10 @@ struct LedgerFeed<'a, P> {
     /// The cells each of this driver's running orbits has crossed while not the frontier
     /// orbit: claimed as soon as it becomes the frontier (None after that: it claims directly).
     crossed: Vec<Crossed>,
+    /// [`Claims::stopped`] when a search for work last found none. A fruitless search walks
+    /// the whole rest of the grid (a quarter of a millisecond at 400×400), and idle lanes ask
+    /// at every poll: without this, 8-lane drivers spent 44 % of a τ = 0.01 run searching.
+    dry_since: Option<u64>,
 }
 
 /// What one running orbit of a [`LedgerFeed`] has crossed.
@@ -407,7 +446,10 @@ impl<P> LedgerFeed<'_, P> {
 
 impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
     fn next(&mut self, all_idle: bool) -> Feed<2> {
-        let cell = {
+        let stopped = self.claims.stopped.load(Ordering::Relaxed);
+        let cell = if self.dry_since == Some(stopped) {
+            None
+        } else {
             let g = self.shared.lock().expect("ledger lock");
             let ledger = &g.ledger;
             if ledger.done() {
@@ -430,6 +472,7 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
                 // Under the lock, so no other lane takes the cell too.
                 claims.set_running(c, true);
             }
+            self.dry_since = cell.is_none().then_some(stopped);
             cell
         };
         if let Some(c) = cell {
@@ -551,8 +594,9 @@ pub fn run_embedded(
             claims: &claims,
             shared: &shared,
             crossed: Vec::new(),
+            dry_since: None,
         };
-        integrate_feed::<_, 2, 2, LANES>(&map, &cell_run.config, &requests, &mut feed);
+        drive(&map, &cell_run.config, &requests, mode, &mut feed);
     });
     let Shared { mut ledger, .. } = shared.into_inner().expect("ledger lock");
     let (n, steps) = claims.abandoned();
