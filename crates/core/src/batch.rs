@@ -334,7 +334,7 @@ pub fn integrate_feed_on<H: Hamiltonian<N>, const N: usize, const K: usize, cons
     feed: &mut impl BatchFeed<N>,
 ) {
     #[cfg(target_arch = "x86_64")]
-    if isa == Isa::Avx512 && L >= 4 && isa.available() {
+    if isa == Isa::Avx512 && L >= 8 && isa.available() {
         // SAFETY: the host has every feature the function is compiled for (checked above).
         return unsafe { feed_loop_avx512::<H, N, K, L>(map, config, requests, feed) };
     }
