@@ -19,23 +19,28 @@ use salient_core::{HenonHeiles, TangentMap};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Mutex;
 
-/// Orbits advanced together in one batched stepper in fast PSS, on every host, and the unit
-/// in which schedulers size their batches.
+/// Orbits advanced together in one batched stepper on the pinned target level, and the unit
+/// in which schedulers size their batches (see [`lanes`] for what runs).
 pub const LANES: usize = 4;
 
-/// Orbits advanced together in one batched stepper in `mode`. Full mode takes what suits the
-/// host ([`Isa::lanes`]: 8 with AVX-512). Fast PSS keeps 4 everywhere: the lanes in flight
-/// bound its speculation, and with 8 (3.8 instead of 6.7 ns per orbit-step) the dropped
-/// steps grew by 40–50 % and 400×400 t = 1e4 ran slower at τ = 0.5 and 0.05 (0.44 vs 0.32 s,
-/// 1.33 vs 1.06 s) and only at τ = 0.01 faster (4.2 vs 4.7 s).
-pub fn lanes(mode: Mode) -> usize {
+/// Below this step, fast PSS also takes the host's lane count.
+const WIDE_FAST_PSS_BELOW_TAU: f64 = 0.02;
+
+/// Orbits advanced together in one batched stepper in `mode` at step `tau`. Full mode takes
+/// what suits the host ([`Isa::lanes`]: 8 with AVX-512). In fast PSS the lanes in flight bound
+/// the speculation: 8 lanes step faster (3.8 instead of 6.7 ns per orbit-step) but drop
+/// 35–50 % more steps, which pays only where the steps outweigh the per-crossing work, i.e.
+/// at small τ. 400×400, t = 1e4, 2 threads, 4 against 8 lanes (2026-11-24, AVX-512 host):
+/// τ = 0.01 4.27 vs 3.6–3.8 s, 0.02 2.29 vs 2.33 s, 0.05 1.06 vs 1.08 s, 0.1 0.67 vs 0.78 s,
+/// 0.5 0.32 vs 0.44 s.
+pub fn lanes(mode: Mode, tau: f64) -> usize {
     match mode {
-        Mode::FastPss => LANES,
-        Mode::Full => Isa::detect().lanes(),
+        Mode::FastPss if tau >= WIDE_FAST_PSS_BELOW_TAU => LANES,
+        _ => Isa::detect().lanes(),
     }
 }
 
-/// Runs the batched driver with [`lanes`]`(mode)` lanes.
+/// Runs the batched driver with [`lanes`] lanes.
 fn drive(
     map: &TangentMap<'_, HenonHeiles>,
     config: &OrbitConfig,
@@ -43,9 +48,10 @@ fn drive(
     mode: Mode,
     feed: &mut impl BatchFeed<2>,
 ) {
-    match mode {
-        Mode::FastPss => integrate_feed::<_, 2, 2, LANES>(map, config, requests, feed),
-        Mode::Full => integrate_feed_host::<_, 2, 2>(map, config, requests, feed),
+    if lanes(mode, map.tau()) == LANES {
+        integrate_feed::<_, 2, 2, LANES>(map, config, requests, feed)
+    } else {
+        integrate_feed_host::<_, 2, 2>(map, config, requests, feed)
     }
 }
 
@@ -362,7 +368,8 @@ pub fn integrate_cells_with(
         Method::TangentMap(scheme) => {
             let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
             let cursor = AtomicUsize::new(0);
-            let drivers = rayon::current_num_threads().min(cells.len().div_ceil(lanes(mode)));
+            let drivers = rayon::current_num_threads()
+                .min(cells.len().div_ceil(lanes(mode, cell_run.config.tau)));
             let finished: Vec<(usize, Outcome)> = (0..drivers)
                 .into_par_iter()
                 .flat_map_iter(|_| {
