@@ -3,8 +3,8 @@
 //! AVX-512. Throughput is reported per orbit-step.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use salient_core::batch::{integrate_feed_on, BatchFeed, Feed, Isa};
-use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests};
+use salient_core::batch::{integrate_batch_on, Isa};
+use salient_core::orbit::{integrate, OrbitConfig, Requests};
 use salient_core::section::on_section;
 use salient_core::{HenonHeiles, Scheme, TangentMap};
 use std::hint::black_box;
@@ -36,26 +36,6 @@ fn regular_ics(n: usize) -> Vec<([f64; 2], [f64; 2])> {
         .collect()
 }
 
-/// Sums the SALI of the orbits it hands out, so the work cannot be optimised away.
-struct Sum<'a> {
-    ics: &'a [([f64; 2], [f64; 2])],
-    next: usize,
-    sali: f64,
-}
-
-impl BatchFeed<2> for Sum<'_> {
-    fn next(&mut self, _all_idle: bool) -> Feed<2> {
-        let Some(&(q, p)) = self.ics.get(self.next) else {
-            return Feed::Done;
-        };
-        self.next += 1;
-        Feed::Orbit(self.next - 1, q, p)
-    }
-    fn finished(&mut self, _id: usize, result: OrbitResult<2>) {
-        self.sali += result.sali;
-    }
-}
-
 fn batched<const L: usize>(
     g: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>,
     isa: Isa,
@@ -70,13 +50,16 @@ fn batched<const L: usize>(
     };
     g.bench_function(BenchmarkId::new(name, L), |b| {
         b.iter(|| {
-            let mut feed = Sum {
-                ics: black_box(&ics),
-                next: 0,
-                sali: 0.0,
-            };
-            integrate_feed_on::<_, 2, 2, L>(isa, &map, &cfg, &Requests::default(), &mut feed);
-            feed.sali
+            let mut sum = 0.0;
+            integrate_batch_on::<_, 2, 2, L>(
+                isa,
+                &map,
+                black_box(&ics),
+                &cfg,
+                &Requests::default(),
+                |_, r| sum += r.sali,
+            );
+            sum
         })
     });
 }

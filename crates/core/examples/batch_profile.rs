@@ -3,29 +3,10 @@
 //! pinned target level and 8 lanes in the copy compiled for the host's widest vectors
 //! (`Isa::detect`: AVX-512 where the CPU has it). An argument `4` or `8` runs only that one.
 
-use salient_core::batch::{integrate_feed_on, BatchFeed, Feed, Isa};
-use salient_core::orbit::{OrbitConfig, OrbitResult, Requests};
+use salient_core::batch::{integrate_batch_on, Isa};
+use salient_core::orbit::{OrbitConfig, Requests};
 use salient_core::section::on_section;
 use salient_core::{HenonHeiles, Scheme, TangentMap};
-
-struct Sum<'a> {
-    ics: &'a [([f64; 2], [f64; 2])],
-    next: usize,
-    sali: f64,
-}
-
-impl BatchFeed<2> for Sum<'_> {
-    fn next(&mut self, _all_idle: bool) -> Feed<2> {
-        let Some(&(q, p)) = self.ics.get(self.next) else {
-            return Feed::Done;
-        };
-        self.next += 1;
-        Feed::Orbit(self.next - 1, q, p)
-    }
-    fn finished(&mut self, _id: usize, result: OrbitResult<2>) {
-        self.sali += result.sali;
-    }
-}
 
 fn run<const L: usize>(isa: Isa) {
     let ham = HenonHeiles;
@@ -34,18 +15,16 @@ fn run<const L: usize>(isa: Isa) {
         .map(|i| on_section(&ham, 0.125, &[0.55 + 0.0005 * i as f64], &[0.0]).unwrap())
         .collect();
     let cfg = OrbitConfig::new(0.05, 1e4);
-    let mut feed = Sum {
-        ics: &ics,
-        next: 0,
-        sali: 0.0,
-    };
+    let mut sali = 0.0;
     let t = std::time::Instant::now();
-    integrate_feed_on::<_, 2, 2, L>(isa, &map, &cfg, &Requests::default(), &mut feed);
+    integrate_batch_on::<_, 2, 2, L>(isa, &map, &ics, &cfg, &Requests::default(), |_, r| {
+        sali += r.sali
+    });
     let el = t.elapsed().as_secs_f64();
     println!(
         "lanes {L} {isa:?}: {:.2} ns/orbit-step (sum of SALI {})",
         el * 1e9 / (64.0 * 2e5),
-        feed.sali
+        sali
     );
 }
 

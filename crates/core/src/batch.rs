@@ -130,6 +130,18 @@ pub fn integrate_batch<H: Hamiltonian<N>, const N: usize, const K: usize, const 
     requests: &Requests,
     sink: impl FnMut(usize, OrbitResult<N>),
 ) {
+    integrate_batch_on::<H, N, K, L>(Isa::detect(), map, ics, config, requests, sink)
+}
+
+/// [`integrate_batch`] on the instruction set the caller chooses (see [`integrate_feed_on`]).
+pub fn integrate_batch_on<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
+    isa: Isa,
+    map: &TangentMap<'_, H>,
+    ics: &[([f64; N], [f64; N])],
+    config: &OrbitConfig,
+    requests: &Requests,
+    sink: impl FnMut(usize, OrbitResult<N>),
+) {
     struct Slice<'a, const N: usize, S> {
         ics: &'a [([f64; N], [f64; N])],
         next: usize,
@@ -150,7 +162,7 @@ pub fn integrate_batch<H: Hamiltonian<N>, const N: usize, const K: usize, const 
         }
     }
     let mut feed = Slice { ics, next: 0, sink };
-    integrate_feed::<H, N, K, L>(map, config, requests, &mut feed)
+    integrate_feed_on::<H, N, K, L>(isa, map, config, requests, &mut feed)
 }
 
 /// What every lane's orbit is integrated with.

@@ -133,24 +133,7 @@ fn batched_lanes_equal_scalar_orbits_bit_for_bit() {
 /// have AVX-512; elsewhere there is nothing to compare and the test says so).
 #[test]
 fn the_avx512_driver_equals_the_pinned_one_bit_for_bit() {
-    use salient_core::batch::{integrate_feed_on, BatchFeed, Feed, Isa};
-    struct Collect<'a> {
-        ics: &'a [([f64; 2], [f64; 2])],
-        next: usize,
-        got: Vec<Option<OrbitResult<2>>>,
-    }
-    impl BatchFeed<2> for Collect<'_> {
-        fn next(&mut self, _all_idle: bool) -> Feed<2> {
-            let Some(&(q, p)) = self.ics.get(self.next) else {
-                return Feed::Done;
-            };
-            self.next += 1;
-            Feed::Orbit(self.next - 1, q, p)
-        }
-        fn finished(&mut self, id: usize, result: OrbitResult<2>) {
-            self.got[id] = Some(result);
-        }
-    }
+    use salient_core::batch::{integrate_batch_on, Isa};
     if !Isa::Avx512.available() {
         eprintln!("this host has no AVX-512: only the pinned driver exists here");
         return;
@@ -167,13 +150,11 @@ fn the_avx512_driver_equals_the_pinned_one_bit_for_bit() {
         let map = TangentMap::new(&ham, &Scheme::by_name(scheme).unwrap(), tau);
         let cfg = OrbitConfig::new(tau, 2000.0);
         let run = |isa| {
-            let mut feed = Collect {
-                ics: &ics,
-                next: 0,
-                got: vec![None; ics.len()],
-            };
-            integrate_feed_on::<_, 2, 2, 8>(isa, &map, &cfg, &requests, &mut feed);
-            feed.got
+            let mut got = vec![None; ics.len()];
+            integrate_batch_on::<_, 2, 2, 8>(isa, &map, &ics, &cfg, &requests, |i, r| {
+                got[i] = Some(r)
+            });
+            got
         };
         let (wide, pinned) = (run(Isa::Avx512), run(Isa::Pinned));
         for (i, (a, b)) in wide.iter().zip(&pinned).enumerate() {
