@@ -247,7 +247,9 @@ impl Claims {
     fn set_running(&self, cell: u32, running: bool) {
         self.running[cell as usize].store(running, Ordering::Relaxed);
         if !running {
-            self.stopped.fetch_add(1, Ordering::Relaxed);
+            // Release, paired with the Acquire in `LedgerFeed::next`: a driver that sees the
+            // new count also sees the cell stopped (`abandoned` stores without the lock).
+            self.stopped.fetch_add(1, Ordering::Release);
         }
     }
 
@@ -453,7 +455,7 @@ impl<P> LedgerFeed<'_, P> {
 
 impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
     fn next(&mut self, all_idle: bool) -> Feed<2> {
-        let stopped = self.claims.stopped.load(Ordering::Relaxed);
+        let stopped = self.claims.stopped.load(Ordering::Acquire);
         let cell = if self.dry_since == Some(stopped) {
             None
         } else {

@@ -4,7 +4,7 @@
 //! in an outbox until acknowledged, so they survive a coordinator restart; on drain it finishes
 //! the lease in progress, releases the ones not started, and deregisters.
 
-use salient_grid::executor::{integrate_cells_with, Claims, LANES};
+use salient_grid::executor::{integrate_cells_with, lanes, Claims};
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::{CellRun, Grid};
 use salient_proto::v1;
@@ -141,7 +141,6 @@ fn compute_thread(
     signals: Arc<Mutex<Signals>>,
     draining: Arc<AtomicBool>,
 ) {
-    let chunk = (pool.current_num_threads() * LANES * 2).max(8);
     // Built grids per (job, run), each tied to the spec it was built from (a coordinator on
     // another store reuses job ids), and few: a worker moves through runs in order.
     type Built = (Arc<JobSpec>, Grid, CellRun, Arc<Claims>);
@@ -188,6 +187,8 @@ fn compute_thread(
         }
         let abandoned0 = claims.abandoned();
         let mode = w.spec.grid.mode;
+        // Two batches per driver, in the lane count the executor will run this lease with.
+        let chunk = (pool.current_num_threads() * lanes(mode, cell_run.config.tau) * 2).max(8);
         let mut rest = w.cells.as_slice();
         loop {
             let take = {
