@@ -14,7 +14,10 @@ use salient_grid::{Grid, Outcome};
 use v1::{OrbitClass, OrbitStatus, TileRef};
 
 /// The protocol version a worker announces at registration; a coordinator refuses others.
-pub const PROTOCOL_VERSION: u32 = 1;
+/// Bumped also when the numerics change the bits of an outcome, so that builds that compute
+/// different bits never serve one coordinator (distributed results must equal `salient run`'s
+/// bit for bit). 2: the fused kick-corrector terms of Hénon–Heiles.
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// Largest message either side accepts (a report of one chunk of orbits with their visited
 /// cells stays far below it).
