@@ -309,8 +309,8 @@ impl Isa {
 
     /// Lanes per batch that suit this instruction set: one vector register per variable.
     /// `cargo run --release -p salient-core --example batch_profile` (2026-11-24, AVX-512
-    /// host): 8 lanes in AVX-512 3.85 ns per orbit-step; 4 lanes 6.7 ns pinned and 8.0 ns in
-    /// AVX-512; 8 lanes pinned 6.7 ns (16 registers cannot hold two groups of four).
+    /// host): 8 lanes in AVX-512 3.55–3.95 ns per orbit-step; 4 lanes 6.3–6.7 ns pinned and
+    /// 8.0 ns in AVX-512; 8 lanes pinned 6.7 ns (16 registers cannot hold two groups of four).
     pub fn lanes(self) -> usize {
         match self {
             Isa::Pinned => 4,
