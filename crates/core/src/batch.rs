@@ -332,19 +332,6 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
     integrate_feed_on::<H, N, K, L>(Isa::detect(), map, config, requests, feed)
 }
 
-/// [`integrate_feed`] with the lane count that suits the host ([`Isa::lanes`]).
-pub fn integrate_feed_host<H: Hamiltonian<N>, const N: usize, const K: usize>(
-    map: &TangentMap<'_, H>,
-    config: &OrbitConfig,
-    requests: &Requests,
-    feed: &mut impl BatchFeed<N>,
-) {
-    match Isa::detect() {
-        Isa::Avx512 => integrate_feed_on::<H, N, K, 8>(Isa::Avx512, map, config, requests, feed),
-        Isa::Pinned => integrate_feed_on::<H, N, K, 4>(Isa::Pinned, map, config, requests, feed),
-    }
-}
-
 /// [`integrate_feed`] with the instruction set chosen by the caller. The AVX-512 copy serves
 /// 8 lanes or more (it measured slower than the pinned one for 4, see [`Isa::lanes`]); an
 /// `isa` the host lacks falls back to [`Isa::Pinned`].

@@ -7,7 +7,7 @@
 use crate::geometry::Grid;
 use crate::ledger::{Ledger, Mode, Outcome};
 use rayon::prelude::*;
-use salient_core::batch::{integrate_feed, integrate_feed_host, BatchFeed, Feed, Isa};
+use salient_core::batch::{integrate_feed, BatchFeed, Feed, Isa};
 use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
@@ -48,10 +48,9 @@ fn drive(
     mode: Mode,
     feed: &mut impl BatchFeed<2>,
 ) {
-    if lanes(mode, map.tau()) == LANES {
-        integrate_feed::<_, 2, 2, LANES>(map, config, requests, feed)
-    } else {
-        integrate_feed_host::<_, 2, 2>(map, config, requests, feed)
+    match lanes(mode, map.tau()) {
+        8 => integrate_feed::<_, 2, 2, 8>(map, config, requests, feed),
+        _ => integrate_feed::<_, 2, 2, LANES>(map, config, requests, feed),
     }
 }
 
