@@ -99,6 +99,16 @@ pub trait BatchFeed<const N: usize> {
     fn finished(&mut self, id: usize, result: OrbitResult<N>);
     /// Called for every upward crossing of orbit `id` when it is located.
     fn on_crossing(&mut self, _id: usize, _crossing: &Crossing<N>) {}
+    /// True when the feed locates crossings itself: the driver then hands it each crossing
+    /// step through [`BatchFeed::crossing_step`] and neither locates nor records it (the
+    /// results carry no crossings). Locating is as costly as stepping at large τ, so a caller
+    /// with a spare core locates there, with [`locate_upward_lanes`], the same bits.
+    fn locates_crossings(&self) -> bool {
+        false
+    }
+    /// Orbit `id` crossed the section upwards in the step that started at (q, p) at time t
+    /// (only when [`BatchFeed::locates_crossings`]).
+    fn crossing_step(&mut self, _id: usize, _q: [f64; N], _p: [f64; N], _t: f64) {}
     /// Polled every [`poll_interval`] steps: true abandons orbit `id` (no result is reported).
     fn cancelled(&mut self, _id: usize) -> bool {
         false
@@ -119,6 +129,12 @@ pub fn poll_interval(tau: f64) -> u64 {
         64
     }
 }
+
+/// Steps between the requests for work of idle lanes when they come before the next
+/// [`poll_interval`]: a feed may answer [`Feed::Wait`] for a moment (the fast-PSS engine does
+/// while the outcomes of the orbits that just ended are on their way to the ledger), and an
+/// idle lane steps at the full cost.
+const IDLE_POLL: u64 = 8;
 
 /// Integrates every initial condition of `ics` as [`integrate`](crate::orbit::integrate) would,
 /// `L` at a time in SIMD lanes, and hands each result to `sink` with its index as soon as it
@@ -398,6 +414,7 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
     let chaotic = config.thresholds.chaotic;
     let factor = alignment_factor(chaotic);
     let (crossings, early) = (requests.crossings, config.thresholds.early_stop);
+    let feed_locates = feed.locates_crossings();
     let every_step = requests.energy;
     let mut step = 0u64;
     let poll = poll_interval(map.tau());
@@ -451,6 +468,7 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
         };
         let mut flagged = [false; L];
         let mut only_aligned = [false; L];
+        let mut only_crossed = [false; L];
         // `!(a <= b)` is true for NaN too, which is the point.
         #[allow(clippy::neg_cmp_op_on_partial_ord)]
         for l in 0..L {
@@ -460,19 +478,26 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
             for n2k in &n2 {
                 f |= !in_band(n2k.0[l]);
             }
-            f |= crossings & (q_prev[0].0[l] < 0.0) & (x.q[0].0[l] >= 0.0);
-            only_aligned[l] = !f;
-            f |= early & (c.0[l] * c.0[l] >= n2[0].0[l] * n2[1].0[l] * factor);
-            flagged[l] = f & st.active[l];
+            let crossed = crossings & (q_prev[0].0[l] < 0.0) & (x.q[0].0[l] >= 0.0);
+            let aligned = early & (c.0[l] * c.0[l] >= n2[0].0[l] * n2[1].0[l] * factor);
+            only_aligned[l] = !f & !crossed;
+            only_crossed[l] = !f & !aligned;
+            flagged[l] = (f | crossed | aligned) & st.active[l];
         }
-        if step.is_multiple_of(poll) {
+        let full_poll = step.is_multiple_of(poll);
+        if full_poll
+            || (step.is_multiple_of(IDLE_POLL) && !st.exhausted && st.active.iter().any(|&a| !a))
+        {
             for l in 0..L {
                 let cancel = match st.jobs[l].as_ref() {
-                    Some(j) => feed.cancelled(j.id),
+                    Some(j) => full_poll && feed.cancelled(j.id),
                     None => !st.exhausted,
                 };
                 if cancel {
-                    queued.flush(map, &mut st.jobs, feed);
+                    if st.jobs[l].is_some() {
+                        // The lane's queued crossings first, while its orbit is still there.
+                        queued.flush(map, &mut st.jobs, feed);
+                    }
                     if let Some(j) = st.jobs[l].take() {
                         feed.abandoned(j.id, st.n[l]);
                     }
@@ -491,10 +516,21 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
                 continue;
             }
             let job = st.jobs[l].as_mut().expect("flagged lanes are active");
-            let (mut sx, mut sinc) = get_lane(&st.x, &st.inc, l);
             let qp: [f64; N] = core::array::from_fn(|i| q_prev[i].0[l]);
             let pp: [f64; N] = core::array::from_fn(|i| p_prev[i].0[l]);
             let n = st.n[l];
+            if only_crossed[l] {
+                // Nothing else is due, so the tracker's pass would only flag the crossing: at
+                // τ = 0.5 that pass on every crossing was half the stepping thread's time.
+                let t = (n - 1) as f64 * map.tau();
+                if feed_locates {
+                    feed.crossing_step(job.id, qp, pp, t);
+                } else if queued.push(l, qp, pp, t) {
+                    queued.flush(map, &mut st.jobs, feed);
+                }
+                continue;
+            }
+            let (mut sx, mut sinc) = get_lane(&st.x, &st.inc, l);
             let mut crossed = false;
             let stop = job.tracker.after_step(
                 map,
@@ -506,8 +542,13 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
                 &mut job.result,
                 Some(&mut crossed),
             );
-            if crossed && queued.push(l, qp, pp, (n - 1) as f64 * map.tau()) {
-                queued.flush(map, &mut st.jobs, feed);
+            if crossed {
+                let t = (n - 1) as f64 * map.tau();
+                if feed_locates {
+                    feed.crossing_step(job.id, qp, pp, t);
+                } else if queued.push(l, qp, pp, t) {
+                    queued.flush(map, &mut st.jobs, feed);
+                }
             }
             if stop || n == n_final {
                 queued.flush(map, &mut st.jobs, feed);

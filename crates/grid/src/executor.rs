@@ -14,10 +14,10 @@ use salient_core::orbit::{
 };
 use salient_core::run::{run_orbit, MethodRun};
 use salient_core::section::on_section;
-use salient_core::section::Crossing;
+use salient_core::section::{locate_upward_lanes, Crossing};
 use salient_core::{HenonHeiles, TangentMap};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
-use std::sync::Mutex;
+use std::sync::{Condvar, Mutex};
 
 /// Orbits advanced together in one batched stepper on the pinned target level, and the unit
 /// in which schedulers size their batches (see [`lanes`] for what runs).
@@ -73,19 +73,24 @@ impl CellRun {
     }
 }
 
+/// The compatible cells of `crossings`, in crossing order, repeats included.
+fn crossed_cells(grid: &Grid, crossings: &[Crossing<2>]) -> Vec<u32> {
+    crossings
+        .iter()
+        .filter_map(|c| grid.cell_of(c.q[1], c.p[1]))
+        .filter(|&c| grid.is_compatible(c))
+        .collect()
+}
+
+/// The outcome of orbit `r` of `cell`, whose crossings fell in the compatible cells `visited`
+/// (any order, repeats allowed).
 fn outcome(
-    grid: &Grid,
     cell_run: &CellRun,
     checkpoints: &[u64],
     cell: u32,
     r: &OrbitResult<2>,
+    mut visited: Vec<u32>,
 ) -> Outcome {
-    let mut visited: Vec<u32> = r
-        .crossings
-        .iter()
-        .filter_map(|c| grid.cell_of(c.q[1], c.p[1]))
-        .filter(|&c| grid.is_compatible(c))
-        .collect();
     visited.sort_unstable();
     visited.dedup();
     let tau = cell_run.config.tau;
@@ -302,13 +307,8 @@ impl BatchFeed<2> for CellsFeed<'_> {
         if let Some(claims) = self.claims {
             claims.set_running(self.cells[i], false);
         }
-        let o = outcome(
-            self.grid,
-            self.cell_run,
-            self.checkpoints,
-            self.cells[i],
-            &r,
-        );
+        let visited = crossed_cells(self.grid, &r.crossings);
+        let o = outcome(self.cell_run, self.checkpoints, self.cells[i], &r, visited);
         self.done.push((i, o));
     }
     fn on_crossing(&mut self, i: usize, c: &Crossing<2>) {
@@ -407,7 +407,13 @@ pub fn integrate_cells_with(
                     &cell_run.config,
                     &requests,
                 );
-                outcome(grid, cell_run, &checkpoints, cell, &r)
+                outcome(
+                    cell_run,
+                    &checkpoints,
+                    cell,
+                    &r,
+                    crossed_cells(grid, &r.crossings),
+                )
             })
             .collect(),
     }
@@ -419,95 +425,84 @@ struct Shared<P> {
     progress: P,
 }
 
-/// The embedded engine's feed: a free lane takes the next cell the ledger needs (skipping
-/// cells in flight or certain to be labelled), and a finished orbit goes to the ledger at once.
-struct LedgerFeed<'a, P> {
+/// What every thread of the embedded fast-PSS engine works against.
+struct Engine<'a, P> {
     grid: &'a Grid,
     cell_run: &'a CellRun,
     checkpoints: &'a [u64],
     claims: &'a Claims,
     shared: &'a Mutex<Shared<P>>,
-    /// The cells each of this driver's running orbits has crossed while not the frontier
-    /// orbit: claimed as soon as it becomes the frontier (None after that: it claims directly).
-    crossed: Vec<Crossed>,
-    /// [`Claims::stopped`] when a search for work last found none. A fruitless search walks
-    /// the whole rest of the grid (a quarter of a millisecond at 400×400), and idle lanes ask
-    /// at every poll: without this, 8-lane drivers spent 44 % of a τ = 0.01 run searching.
-    dry_since: Option<u64>,
 }
 
-/// What one running orbit of a [`LedgerFeed`] has crossed.
-struct Crossed {
-    cell: u32,
-    /// Cells crossed while not the frontier orbit (None once it is).
-    cells: Option<Vec<u32>>,
-    /// Cells already handled, direct-mapped: a regular orbit crosses the same few dozen
-    /// cells a thousand times, and each skipped repeat saves reads of shared arrays.
-    recent: [u32; 64],
+/// What a lane asking for work gets from [`Engine::take_needed`].
+enum Needed {
+    Cell(u32),
+    NotNow,
+    Done,
 }
 
-impl<P> LedgerFeed<'_, P> {
-    fn forget(&mut self, cell: u32) {
-        self.crossed.retain(|c| c.cell != cell);
-    }
-}
-
-impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
-    fn next(&mut self, all_idle: bool) -> Feed<2> {
+impl<P: FnMut(&Ledger)> Engine<'_, P> {
+    /// The first cell the ledger needs that no lane runs and no other orbit is certain or
+    /// likely to label, marked running. `dry_since` holds [`Claims::stopped`] as of the last
+    /// fruitless search: a fruitless search walks the whole rest of the grid (a quarter of a
+    /// millisecond at 400×400), and idle lanes ask at every poll (without this, 8-lane
+    /// drivers spent 44 % of a τ = 0.01 run searching), so it is repeated only after an
+    /// orbit stops.
+    fn take_needed(&self, dry_since: &mut Option<u64>) -> Needed {
         let stopped = self.claims.stopped.load(Ordering::Acquire);
-        let cell = if self.dry_since == Some(stopped) {
-            None
-        } else {
-            let g = self.shared.lock().expect("ledger lock");
-            let ledger = &g.ledger;
-            if ledger.done() {
-                return Feed::Done;
-            }
-            let (claims, grid) = (self.claims, self.grid);
-            // A cell crossed by an earlier running orbit or an earlier pending outcome will be
-            // labelled by it unless that orbit is dropped: take other cells first. The frontier
-            // cell is never skipped (nothing before it runs), so this cannot stall.
-            let cell = ledger
-                .needed(1, &|c| {
-                    claims.is_running(c)
-                        || claims.is_claimed(c)
-                        || ledger.is_claimed(c)
-                        || claims.running_crosser(grid, c).is_some()
-                })
-                .first()
-                .copied();
-            if let Some(c) = cell {
-                // Under the lock, so no other lane takes the cell too.
-                claims.set_running(c, true);
-            }
-            self.dry_since = cell.is_none().then_some(stopped);
-            cell
-        };
-        if let Some(c) = cell {
-            self.crossed.push(Crossed {
-                cell: c,
-                cells: Some(Vec::new()),
-                recent: [u32::MAX; 64],
-            });
+        if *dry_since == Some(stopped) {
+            return Needed::NotNow;
         }
+        let g = self.shared.lock().expect("ledger lock");
+        let ledger = &g.ledger;
+        if ledger.done() {
+            return Needed::Done;
+        }
+        let (claims, grid) = (self.claims, self.grid);
+        // A cell crossed by an earlier running orbit or an earlier pending outcome will be
+        // labelled by it unless that orbit is dropped: take other cells first. The frontier
+        // cell is never skipped (nothing before it runs), so this cannot stall.
+        let cell = ledger
+            .needed(1, &|c| {
+                claims.is_running(c)
+                    || claims.is_claimed(c)
+                    || ledger.is_claimed(c)
+                    || claims.running_crosser(grid, c).is_some()
+            })
+            .first()
+            .copied();
+        *dry_since = cell.is_none().then_some(stopped);
         match cell {
             Some(c) => {
+                // Under the lock, so no other lane takes the cell too.
+                claims.set_running(c, true);
+                Needed::Cell(c)
+            }
+            None => Needed::NotNow,
+        }
+    }
+
+    /// The batched driver's answer to `next` for a [`Engine::take_needed`] result.
+    fn feed(&self, needed: Needed, all_idle: bool) -> Feed<2> {
+        match needed {
+            Needed::Cell(c) => {
                 let (q, p) = initial_point(self.grid, c);
                 Feed::Orbit(c as usize, q, p)
             }
-            None => {
+            Needed::NotNow => {
                 if all_idle {
                     // Everything still needed is in flight elsewhere.
                     std::thread::sleep(std::time::Duration::from_micros(50));
                 }
                 Feed::Wait
             }
+            Needed::Done => Feed::Done,
         }
     }
-    fn finished(&mut self, cell: usize, r: OrbitResult<2>) {
-        let cell = cell as u32;
-        self.forget(cell);
-        let o = outcome(self.grid, self.cell_run, self.checkpoints, cell, &r);
+
+    /// Hands the finished orbit of `cell`, whose crossings fell in `visited`, to the ledger.
+    fn commit(&self, cell: u32, r: &OrbitResult<2>, visited: Vec<u32>) {
+        let o = outcome(self.cell_run, self.checkpoints, cell, r, visited);
         let mut g = self.shared.lock().expect("ledger lock");
         let Shared { ledger, progress } = &mut *g;
         ledger.offer(o);
@@ -516,23 +511,65 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
         self.claims.sync(ledger);
         progress(ledger);
     }
-    fn on_crossing(&mut self, cell: usize, c: &Crossing<2>) {
-        let from = cell as u32;
-        let Some(to) = self.grid.cell_of(c.q[1], c.p[1]) else {
-            return;
+
+    fn cancelled(&self, cell: u32) -> bool {
+        self.claims.is_claimed(cell) || self.claims.probably_labelled(self.grid, cell)
+    }
+
+    fn abandoned(&self, cell: u32, steps: u64) {
+        self.claims.set_running(cell, false);
+        self.claims.record_abandoned(steps);
+    }
+}
+
+/// What one running orbit has crossed so far.
+struct Crossed {
+    cell: u32,
+    /// Cells crossed while not the frontier orbit (None once it is): claimed as soon as it
+    /// becomes the frontier.
+    cells: Option<Vec<u32>>,
+    /// Cells already handled, direct-mapped: a regular orbit crosses the same few dozen
+    /// cells a thousand times, and each skipped repeat saves reads of shared arrays.
+    recent: [u32; 64],
+    /// The compatible cells crossed, in crossing order; a repeat that `recent` still holds is
+    /// left out.
+    visited: Vec<u32>,
+}
+
+/// The crossings of one thread's running orbits, turned into claims as they are located.
+#[derive(Default)]
+struct CrossingBook {
+    orbits: Vec<Crossed>,
+}
+
+impl CrossingBook {
+    /// The running orbit of `from` crossed `to`.
+    fn crossed(&mut self, grid: &Grid, claims: &Claims, from: u32, to: u32) {
+        let k = match self.orbits.iter().position(|c| c.cell == from) {
+            Some(k) => k,
+            None => {
+                self.orbits.push(Crossed {
+                    cell: from,
+                    cells: Some(Vec::new()),
+                    recent: [u32::MAX; 64],
+                    visited: Vec::new(),
+                });
+                self.orbits.len() - 1
+            }
         };
-        let claims = self.claims;
-        let Some(orbit) = self.crossed.iter_mut().find(|c| c.cell == from) else {
-            return;
-        };
+        let orbit = &mut self.orbits[k];
         let frontier = claims.is_frontier(from);
         let slot = &mut orbit.recent[to as usize % 64];
+        let repeat = *slot == to;
         // A repeat needs nothing, unless the orbit has just become the frontier and has its
         // earlier crossings to claim.
-        if *slot == to && (orbit.cells.is_none() || !frontier) {
+        if repeat && (orbit.cells.is_none() || !frontier) {
             return;
         }
         *slot = to;
+        if !repeat && grid.is_compatible(to) {
+            orbit.visited.push(to);
+        }
         if frontier {
             for v in orbit.cells.take().into_iter().flatten().chain([to]) {
                 claims.claim_crossed(v);
@@ -543,21 +580,304 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
             }
         }
     }
+
+    /// Forgets the orbit of `cell` (it stopped) and returns the cells it crossed.
+    fn take(&mut self, cell: u32) -> Vec<u32> {
+        match self.orbits.iter().position(|c| c.cell == cell) {
+            Some(k) => self.orbits.swap_remove(k).visited,
+            None => Vec::new(),
+        }
+    }
+}
+
+/// The embedded engine's feed when one thread both steps and locates: a free lane takes the
+/// next cell the ledger needs, and a finished orbit goes to the ledger at once.
+struct LedgerFeed<'a, P> {
+    engine: &'a Engine<'a, P>,
+    book: CrossingBook,
+    dry_since: Option<u64>,
+}
+
+impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
+    fn next(&mut self, all_idle: bool) -> Feed<2> {
+        let needed = self.engine.take_needed(&mut self.dry_since);
+        self.engine.feed(needed, all_idle)
+    }
+    fn finished(&mut self, cell: usize, r: OrbitResult<2>) {
+        let visited = self.book.take(cell as u32);
+        self.engine.commit(cell as u32, &r, visited);
+    }
+    fn on_crossing(&mut self, cell: usize, c: &Crossing<2>) {
+        let e = self.engine;
+        if let Some(to) = e.grid.cell_of(c.q[1], c.p[1]) {
+            self.book.crossed(e.grid, e.claims, cell as u32, to);
+        }
+    }
     fn cancelled(&mut self, cell: usize) -> bool {
-        self.claims.is_claimed(cell as u32) || self.claims.probably_labelled(self.grid, cell as u32)
+        self.engine.cancelled(cell as u32)
     }
     fn abandoned(&mut self, cell: usize, steps: u64) {
-        self.forget(cell as u32);
-        self.claims.set_running(cell as u32, false);
-        self.claims.record_abandoned(steps);
+        self.book.take(cell as u32);
+        self.engine.abandoned(cell as u32, steps);
+    }
+}
+
+/// What a stepping thread tells its locating thread, in the order it happened.
+enum Event {
+    Crossing {
+        cell: u32,
+        q: [f64; 2],
+        p: [f64; 2],
+        t: f64,
+    },
+    Finished {
+        cell: u32,
+        /// Boxed: crossings, by far the most frequent events, would otherwise be moved at the
+        /// size of a whole result.
+        result: Box<OrbitResult<2>>,
+    },
+    Abandoned {
+        cell: u32,
+        steps: u64,
+    },
+    /// The stepping thread has stopped.
+    Done,
+}
+
+/// The hand-off from a stepping thread to its locating thread. Both sides swap whole vectors,
+/// so once their capacities have grown nothing is allocated. The locating thread spins
+/// briefly before it sleeps: the stepping thread waits for it whenever a lane needs a new
+/// cell, and waking a sleeping thread takes longer than handling what it was sent.
+#[derive(Default)]
+struct Pipe {
+    inbox: Mutex<Inbox>,
+    ready: Condvar,
+    /// Events sent so far.
+    sent: Padded<AtomicU64>,
+    /// Events handled so far: every orbit that ended up to there is in the ledger (with all
+    /// its crossings); crossings of orbits still running may still wait to be located.
+    handled: Padded<AtomicU64>,
+}
+
+#[derive(Default)]
+struct Inbox {
+    events: Vec<Event>,
+    /// The locating thread waits on [`Pipe::ready`]: only then is it notified (a notification
+    /// is a system call, and a send every poll made that a sixth of the stepping thread's
+    /// time).
+    sleeping: bool,
+}
+
+/// A value on a cache line of its own, so that one thread's writes do not evict what
+/// another thread reads.
+#[derive(Default)]
+#[repr(align(128))]
+struct Padded<T>(T);
+
+impl<T> std::ops::Deref for Padded<T> {
+    type Target = T;
+    fn deref(&self) -> &T {
+        &self.0
+    }
+}
+
+/// Spins of the locating thread before it sleeps (a few tens of microseconds).
+const PIPE_SPINS: u32 = 1 << 14;
+
+impl Pipe {
+    fn send(&self, out: &mut Vec<Event>) {
+        if out.is_empty() {
+            return;
+        }
+        let n = out.len() as u64;
+        let mut inbox = self.inbox.lock().expect("pipe");
+        inbox.events.append(out);
+        self.sent.fetch_add(n, Ordering::Release);
+        if inbox.sleeping {
+            drop(inbox);
+            self.ready.notify_one();
+        }
+    }
+
+    /// Waits for events and moves them into the empty `into`; `seen` counts the events
+    /// received before.
+    fn receive(&self, into: &mut Vec<Event>, seen: u64) {
+        for _ in 0..PIPE_SPINS {
+            if self.sent.load(Ordering::Acquire) != seen {
+                break;
+            }
+            std::hint::spin_loop();
+        }
+        let mut inbox = self.inbox.lock().expect("pipe");
+        while inbox.events.is_empty() {
+            inbox.sleeping = true;
+            inbox = self.ready.wait(inbox).expect("pipe");
+            inbox.sleeping = false;
+        }
+        std::mem::swap(&mut inbox.events, into);
+    }
+
+    /// Waits until everything sent has been handled, so the ledger and the claims know what
+    /// the stepping side knows.
+    fn drain(&self) {
+        let sent = self.sent.load(Ordering::Relaxed);
+        while self.handled.load(Ordering::Acquire) < sent {
+            std::hint::spin_loop();
+        }
+    }
+}
+
+/// The stepping half of a pipelined pair: the batched driver's feed, which passes crossing
+/// steps and ended orbits on to the locating half instead of handling them. Events go out at
+/// every poll and whenever a lane asks for work, so claims lag the orbits by at most one poll
+/// interval.
+struct StepperFeed<'a, P> {
+    engine: &'a Engine<'a, P>,
+    pipe: &'a Pipe,
+    out: Vec<Event>,
+    dry_since: Option<u64>,
+    /// Events sent or to be sent up to the last orbit that ended.
+    ended: u64,
+}
+
+impl<P: FnMut(&Ledger)> BatchFeed<2> for StepperFeed<'_, P> {
+    fn next(&mut self, all_idle: bool) -> Feed<2> {
+        self.pipe.send(&mut self.out);
+        // A cell chosen before the ledger has the orbits that just ended (and the claims their
+        // crossings make) is often one they label: the lane waits for the next poll instead,
+        // unless no lane has work.
+        let seen = self.pipe.handled.load(Ordering::Acquire);
+        if seen < self.ended {
+            if !all_idle {
+                return Feed::Wait;
+            }
+            self.pipe.drain();
+        }
+        let needed = self.engine.take_needed(&mut self.dry_since);
+        self.engine.feed(needed, all_idle)
+    }
+    fn finished(&mut self, cell: usize, result: OrbitResult<2>) {
+        let cell = cell as u32;
+        self.out.push(Event::Finished {
+            cell,
+            result: Box::new(result),
+        });
+        self.note_end();
+    }
+    fn locates_crossings(&self) -> bool {
+        true
+    }
+    fn crossing_step(&mut self, cell: usize, q: [f64; 2], p: [f64; 2], t: f64) {
+        let cell = cell as u32;
+        self.out.push(Event::Crossing { cell, q, p, t });
+    }
+    fn cancelled(&mut self, cell: usize) -> bool {
+        self.pipe.send(&mut self.out);
+        self.engine.cancelled(cell as u32)
+    }
+    fn abandoned(&mut self, cell: usize, steps: u64) {
+        let cell = cell as u32;
+        self.out.push(Event::Abandoned { cell, steps });
+        self.note_end();
+    }
+}
+
+impl<P> StepperFeed<'_, P> {
+    /// An orbit has just ended: its event is the last in `out`.
+    fn note_end(&mut self) {
+        self.ended = self.pipe.sent.load(Ordering::Relaxed) + self.out.len() as u64;
+    }
+}
+
+impl<P> Drop for StepperFeed<'_, P> {
+    /// The locating half waits for `Done`, also when the stepping half unwinds.
+    fn drop(&mut self) {
+        self.out.push(Event::Done);
+        self.pipe.send(&mut self.out);
+    }
+}
+
+/// The locating half of a pipelined pair: locates the crossings its stepping half found,
+/// [`LANES`] at a time in SIMD lanes (bit for bit the batched driver's own locating), turns
+/// them into claims and hands ended orbits to the ledger, until the stepping half is done.
+fn locate_events<P: FnMut(&Ledger)>(
+    engine: &Engine<'_, P>,
+    map: &TangentMap<'_, HenonHeiles>,
+    pipe: &Pipe,
+) {
+    let mut book = CrossingBook::default();
+    let mut events = Vec::new();
+    let mut owners = [0u32; LANES];
+    let mut starts = [([0.0; 2], [0.0; 2], 0.0); LANES];
+    let mut queued = 0;
+    let locate = |book: &mut CrossingBook, owners: &[u32], starts: &[([f64; 2], [f64; 2], f64)]| {
+        if starts.is_empty() {
+            return;
+        }
+        let found = locate_upward_lanes::<_, 2, LANES>(map, starts);
+        for (&from, c) in owners.iter().zip(&found) {
+            if let Some(to) = engine.grid.cell_of(c.q[1], c.p[1]) {
+                book.crossed(engine.grid, engine.claims, from, to);
+            }
+        }
+    };
+    let mut received = 0;
+    loop {
+        pipe.receive(&mut events, received);
+        let first = received;
+        received += events.len() as u64;
+        let mut done = false;
+        for (k, event) in events.drain(..).enumerate() {
+            let ended = matches!(event, Event::Finished { .. } | Event::Abandoned { .. });
+            match event {
+                Event::Crossing { cell, q, p, t } => {
+                    owners[queued] = cell;
+                    starts[queued] = (q, p, t);
+                    queued += 1;
+                    if queued == LANES {
+                        locate(&mut book, &owners, &starts);
+                        queued = 0;
+                    }
+                }
+                Event::Finished { cell, result } => {
+                    if owners[..queued].contains(&cell) {
+                        locate(&mut book, &owners[..queued], &starts[..queued]);
+                        queued = 0;
+                    }
+                    engine.commit(cell, &result, book.take(cell));
+                }
+                Event::Abandoned { cell, steps } => {
+                    if owners[..queued].contains(&cell) {
+                        locate(&mut book, &owners[..queued], &starts[..queued]);
+                        queued = 0;
+                    }
+                    book.take(cell);
+                    engine.abandoned(cell, steps);
+                }
+                Event::Done => done = true,
+            }
+            if ended {
+                // The stepping thread waits for this before it hands the lane a new cell.
+                pipe.handled.store(first + k as u64 + 1, Ordering::Release);
+            }
+        }
+        // Claims should not wait for the next batch of events.
+        locate(&mut book, &owners[..queued], &starts[..queued]);
+        queued = 0;
+        pipe.handled.store(received, Ordering::Release);
+        if done {
+            return;
+        }
     }
 }
 
 /// Runs a whole grid in this process on the current rayon pool and returns the finished
-/// ledger. Fast PSS with a tangent-map method streams: every thread runs a batched stepper
-/// whose free lanes take the next cell the ledger needs (skipping cells in flight or certain
-/// to be labelled) and offer each outcome the moment its orbit ends; orbits whose cell the
-/// frontier orbit crosses are abandoned. Speculation is bounded by the lanes in flight.
+/// ledger. Fast PSS with a tangent-map method streams: batched steppers whose free lanes take
+/// the next cell the ledger needs (skipping cells in flight or certain to be labelled) and
+/// offer each outcome the moment its orbit ends; orbits whose cell the frontier orbit crosses
+/// are abandoned. Speculation is bounded by the lanes in flight. At large τ, where locating
+/// crossings costs as much as stepping, threads work in pairs (see [`pipelined`]): one steps,
+/// the other locates and keeps the books, so half the lanes are in flight for the same cores.
 /// Other runs go in rounds of `window` cells: adaptive methods cannot abandon orbits, and
 /// streaming them measured slower (more dropped work) than rounds. Either way the labels are
 /// those of the sequential rule.
@@ -594,20 +914,57 @@ pub fn run_embedded(
     let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
-    rayon::broadcast(|_| {
-        let mut feed = LedgerFeed {
-            grid,
-            cell_run,
-            checkpoints: &checkpoints,
-            claims: &claims,
-            shared: &shared,
-            crossed: Vec::new(),
-            dry_since: None,
-        };
-        drive(&map, &cell_run.config, &requests, mode, &mut feed);
+    let engine = Engine {
+        grid,
+        cell_run,
+        checkpoints: &checkpoints,
+        claims: &claims,
+        shared: &shared,
+    };
+    let threads = rayon::current_num_threads();
+    let pairs = if pipelined(cell_run.config.tau) {
+        threads / 2
+    } else {
+        0
+    };
+    let pipes: Vec<Pipe> = (0..pairs).map(|_| Pipe::default()).collect();
+    rayon::broadcast(|ctx| {
+        let i = ctx.index();
+        match pipes.get(i / 2) {
+            Some(pipe) if i % 2 == 0 => {
+                let mut feed = StepperFeed {
+                    engine: &engine,
+                    pipe,
+                    out: Vec::new(),
+                    dry_since: None,
+                    ended: 0,
+                };
+                drive(&map, &cell_run.config, &requests, mode, &mut feed);
+            }
+            Some(pipe) => locate_events(&engine, &map, pipe),
+            None => {
+                let mut feed = LedgerFeed {
+                    engine: &engine,
+                    book: CrossingBook::default(),
+                    dry_since: None,
+                };
+                drive(&map, &cell_run.config, &requests, mode, &mut feed);
+            }
+        }
     });
     let Shared { mut ledger, .. } = shared.into_inner().expect("ledger lock");
     let (n, steps) = claims.abandoned();
     ledger.record_abandoned(n, steps);
     ledger
+}
+
+/// From this step on, embedded fast PSS runs its threads in pairs of a stepping and a
+/// locating thread (see [`run_embedded`]).
+const PIPELINE_FROM_TAU: f64 = 0.2;
+
+/// Whether embedded fast PSS at step `tau` runs in stepping/locating pairs: at τ = 0.5 a
+/// crossing comes every dozen steps and locating it with its bookkeeping costs as much as
+/// the steps, and doubling the lanes in flight triples the dropped work.
+fn pipelined(tau: f64) -> bool {
+    tau >= PIPELINE_FROM_TAU && std::env::var("SALIENT_PIPELINE").map_or(true, |v| v != "0")
 }
