@@ -654,6 +654,8 @@ struct Pipe {
     ready: Condvar,
     /// Events sent so far.
     sent: Padded<AtomicU64>,
+    /// The locating thread panicked: the stepping thread must not wait for it.
+    broken: AtomicBool,
     /// Events handled so far: every orbit that ended up to there is in the ledger (with all
     /// its crossings); crossings of orbits still running may still wait to be located.
     handled: Padded<AtomicU64>,
@@ -722,6 +724,10 @@ impl Pipe {
     fn drain(&self) {
         let sent = self.sent.load(Ordering::Relaxed);
         while self.handled.load(Ordering::Acquire) < sent {
+            assert!(
+                !self.broken.load(Ordering::Relaxed),
+                "the locating thread panicked"
+            );
             std::hint::spin_loop();
         }
     }
@@ -805,6 +811,16 @@ fn locate_events<P: FnMut(&Ledger)>(
     map: &TangentMap<'_, HenonHeiles>,
     pipe: &Pipe,
 ) {
+    /// Marks the pipe broken if the locating thread unwinds.
+    struct Guard<'a>(&'a Pipe);
+    impl Drop for Guard<'_> {
+        fn drop(&mut self) {
+            if std::thread::panicking() {
+                self.0.broken.store(true, Ordering::Relaxed);
+            }
+        }
+    }
+    let _guard = Guard(pipe);
     let mut book = CrossingBook::default();
     let mut events = Vec::new();
     let mut owners = [0u32; LANES];
