@@ -844,7 +844,15 @@ fn locate_events<P: FnMut(&Ledger)>(
         received += events.len() as u64;
         let mut done = false;
         for (k, event) in events.drain(..).enumerate() {
-            let ended = matches!(event, Event::Finished { .. } | Event::Abandoned { .. });
+            let ended = match &event {
+                Event::Finished { cell, .. } | Event::Abandoned { cell, .. } => Some(*cell),
+                _ => None,
+            };
+            // An orbit's crossings are all booked before its end is handled.
+            if ended.is_some_and(|c| owners[..queued].contains(&c)) {
+                locate(&mut book, &owners[..queued], &starts[..queued]);
+                queued = 0;
+            }
             match event {
                 Event::Crossing { cell, q, p, t } => {
                     owners[queued] = cell;
@@ -856,23 +864,15 @@ fn locate_events<P: FnMut(&Ledger)>(
                     }
                 }
                 Event::Finished { cell, result } => {
-                    if owners[..queued].contains(&cell) {
-                        locate(&mut book, &owners[..queued], &starts[..queued]);
-                        queued = 0;
-                    }
                     engine.commit(cell, &result, book.take(cell));
                 }
                 Event::Abandoned { cell, steps } => {
-                    if owners[..queued].contains(&cell) {
-                        locate(&mut book, &owners[..queued], &starts[..queued]);
-                        queued = 0;
-                    }
                     book.take(cell);
                     engine.abandoned(cell, steps);
                 }
                 Event::Done => done = true,
             }
-            if ended {
+            if ended.is_some() {
                 // The stepping thread waits for this before it hands the lane a new cell.
                 pipe.handled.store(first + k as u64 + 1, Ordering::Release);
             }
@@ -976,11 +976,14 @@ pub fn run_embedded(
 
 /// From this step on, embedded fast PSS runs its threads in pairs of a stepping and a
 /// locating thread (see [`run_embedded`]).
-const PIPELINE_FROM_TAU: f64 = 0.2;
+const PIPELINE_FROM_TAU: f64 = 0.35;
 
-/// Whether embedded fast PSS at step `tau` runs in stepping/locating pairs: at τ = 0.5 a
-/// crossing comes every dozen steps and locating it with its bookkeeping costs as much as
-/// the steps, and doubling the lanes in flight triples the dropped work.
+/// Whether embedded fast PSS at step `tau` runs in stepping/locating pairs. At τ = 0.5 a
+/// crossing comes every dozen steps, locating it with its bookkeeping costs as much as the
+/// steps, and a second driver's lanes in flight triple the dropped work; at smaller τ the
+/// stepping thread alone is the bottleneck. 400×400, t = 1e4, 2 threads, pairs against one
+/// driver per thread (2026-11-24): τ = 0.2 0.46 vs 0.37 s, 0.3 0.32 vs 0.32 s, 0.4 0.25 vs
+/// 0.27 s, 0.5 0.23 vs 0.27 s. `SALIENT_PIPELINE=0` turns pairs off (for comparisons).
 fn pipelined(tau: f64) -> bool {
     tau >= PIPELINE_FROM_TAU && std::env::var("SALIENT_PIPELINE").map_or(true, |v| v != "0")
 }
