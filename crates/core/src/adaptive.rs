@@ -309,6 +309,56 @@ fn locate_dense<I: AdaptiveIntegrator<N, K>, const N: usize, const K: usize>(
     Crossing { t, q: y.q, p: y.p }
 }
 
+/// SALI at a multiple of τ inside a free step is computed only where [`stop_window`] says it may
+/// be below this many times the chaotic threshold: the factor covers the dense output's own
+/// error, which the bound (about the exact flow) does not see.
+const STOP_MARGIN: f64 = 4.0;
+
+/// A rate R with SALI(t) ≥ SALI(s) e^{−R|t − s|} for t, s in one step whose ends have
+/// positions `q0`, `q1`.
+///
+/// With v' = A v, A = [[0, I], [−D²V, 0]], the unit vectors u, w obey u' = Au − (u·Au)u, so
+/// d = u ∓ w has |d'| ≤ 4‖A‖ |d| (|u·Au − w·Aw| ≤ 2‖A‖ |d|), and SALI = min |u ∓ w| shrinks
+/// no faster than e^{−4‖A‖t}. ‖A‖₂ = max(1, ‖D²V‖₂) ≤ max(1, ‖D²V‖_F); the Hessian is taken at
+/// both ends and doubled for the path between them.
+fn sali_decay_rate<H: Hamiltonian<N>, const N: usize>(
+    ham: &H,
+    q0: &[f64; N],
+    q1: &[f64; N],
+) -> f64 {
+    let frobenius = |q: &[f64; N]| {
+        let h = ham.hessian(q);
+        h.iter().flatten().map(|x| x * x).sum::<f64>().sqrt()
+    };
+    4.0 * 2.0 * frobenius(q0).max(frobenius(q1)).max(1.0)
+}
+
+/// The times in [t0, t1] where SALI may be below `bound`, given its values at both ends and a
+/// decay rate from [`sali_decay_rate`]; `None` when it stays above everywhere.
+fn stop_window(
+    (t0, s0): (f64, f64),
+    (t1, s1): (f64, f64),
+    rate: f64,
+    bound: f64,
+) -> Option<(f64, f64)> {
+    // Nowhere below iff ln(s0/b) + ln(s1/b) ≥ R (t1 − t0) with both terms positive: one
+    // exponential decides the common case.
+    if s0 > bound && s1 > bound && s0 * s1 >= bound * bound * (rate * (t1 - t0)).exp() {
+        return None;
+    }
+    let lo = if s0 > bound {
+        t0 + (s0 / bound).ln() / rate
+    } else {
+        t0
+    };
+    let hi = if s1 > bound {
+        t1 - (s1 / bound).ln() / rate
+    } else {
+        t1
+    };
+    (lo <= hi).then_some((lo, hi))
+}
+
 /// Integrates the orbit held by `integ` (deviation vectors already set) to `config.t_final`.
 pub fn integrate_adaptive<H, I, const N: usize, const K: usize>(
     ham: &H,
@@ -316,6 +366,23 @@ pub fn integrate_adaptive<H, I, const N: usize, const K: usize>(
     protocol: Protocol,
     config: &OrbitConfig,
     requests: &Requests,
+) -> OrbitResult<N>
+where
+    H: Hamiltonian<N>,
+    I: AdaptiveIntegrator<N, K>,
+{
+    integrate(ham, integ, protocol, config, requests, false)
+}
+
+/// [`integrate_adaptive`]; with `every_tau`, the free protocol computes SALI at every multiple
+/// of τ (the reference its stop window is tested against).
+fn integrate<H, I, const N: usize, const K: usize>(
+    ham: &H,
+    integ: &mut I,
+    protocol: Protocol,
+    config: &OrbitConfig,
+    requests: &Requests,
+    every_tau: bool,
 ) -> OrbitResult<N>
 where
     H: Hamiltonian<N>,
@@ -342,6 +409,8 @@ where
     let mut t_end_state = 0.0;
     let mut end_state = y0;
     let want_dense = requests.crossings || protocol == Protocol::Free;
+    let mut q_prev = y0.q;
+    let mut sali_prev = sali((&y0.dq[0], &y0.dp[0]), (&y0.dq[1], &y0.dp[1]));
 
     'outer: while n < n_final {
         let target = match protocol {
@@ -387,11 +456,58 @@ where
                 }
             }
             Protocol::Free => {
-                // Every multiple of τ inside this step, through the dense output.
-                while n < n_final && (n + 1) as f64 * tau <= integ.t() {
-                    n += 1;
+                // The multiples of τ inside this step, through the dense output; only those
+                // that matter: samples, t_final, and those where the early stop could fire.
+                let (t0, t1) = (integ.t_prev(), integ.t());
+                let y1 = integ.state();
+                let sali1 = sali((&y1.dq[0], &y1.dp[0]), (&y1.dq[1], &y1.dp[1]));
+                // The last multiple of τ in the step, by the same test as the sampling loop had.
+                let mut n_last = ((t1 / tau) as u64).clamp(n, n_final);
+                while n_last < n_final && (n_last + 1) as f64 * tau <= t1 {
+                    n_last += 1;
+                }
+                while n_last > n && n_last as f64 * tau > t1 {
+                    n_last -= 1;
+                }
+                let stop_window = if every_tau {
+                    Some((t0, t1))
+                } else if config.thresholds.early_stop {
+                    let rate = sali_decay_rate(ham, &q_prev, &y1.q);
+                    stop_window(
+                        (t0, sali_prev),
+                        (t1, sali1),
+                        rate,
+                        STOP_MARGIN * config.thresholds.chaotic,
+                    )
+                } else {
+                    None
+                };
+                sali_prev = sali1;
+                q_prev = y1.q;
+                // The window in multiples of τ, one of slack either side for the rounding.
+                let window = stop_window.map(|(lo, hi)| {
+                    (
+                        ((lo / tau).floor() as u64).saturating_sub(1),
+                        (hi / tau).ceil() as u64 + 1,
+                    )
+                });
+                while n < n_last {
+                    let mut next = if n_last == n_final { n_final } else { u64::MAX };
+                    if let Some(&s) = books.samples.get(books.next_sample) {
+                        next = next.min(s);
+                    }
+                    if let Some((first, last)) = window {
+                        let first = first.max(n + 1);
+                        if first <= last {
+                            next = next.min(first);
+                        }
+                    }
+                    n = next.min(n_last);
+                    if next > n_last {
+                        break;
+                    }
                     let t = n as f64 * tau;
-                    let at = (t != integ.t()).then_some(t);
+                    let at = (t != t1).then_some(t);
                     let y = at.map_or_else(|| integ.state(), |t| integ.interpolate(t));
                     t_end_state = t;
                     end_state = y;
@@ -439,4 +555,131 @@ where
         out.class = None;
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dop853::Dop853Config;
+    use crate::hamiltonian::HenonHeiles;
+    use crate::orbit::initial_vectors;
+    use crate::section::on_section;
+    use crate::Deviation;
+
+    fn start(q2: f64, p2: f64) -> Phase<f64, 2, 2> {
+        let (q, p) = on_section(&HenonHeiles, 0.125, &[q2], &[p2]).unwrap();
+        let (dq, dp) = initial_vectors::<2, 2>(Deviation::Axes);
+        Phase { q, p, dq, dp }
+    }
+
+    fn dop853(y: Phase<f64, 2, 2>, delta: f64) -> Dop853Orbit<'static, HenonHeiles, 2, 2> {
+        Dop853Orbit::new(
+            &HenonHeiles,
+            Dop853::new(&HenonHeiles, Dop853Config::with_delta(delta), 0.0, y),
+        )
+    }
+
+    fn taylor(y: Phase<f64, 2, 2>, delta: f64) -> TaylorOrbit<'static, HenonHeiles, f64, 2, 2> {
+        TaylorOrbit::new(&HenonHeiles, Taylor::new(&HenonHeiles, delta, 0.0, y))
+    }
+
+    /// The decay bound holds inside every step of a chaotic orbit, with the rate taken from
+    /// the step's ends alone (without the factor 2 of [`sali_decay_rate`] for the path): a
+    /// rate too small by that factor would already fail here.
+    #[test]
+    fn sali_never_falls_faster_than_the_decay_rate() {
+        let mut integ = dop853(start(-0.25, 0.0), 1e-10);
+        let mut checked = 0;
+        let mut tightest = f64::INFINITY;
+        // Down to SALI ~ 1e-11, where rounding (not the flow) starts to move it.
+        let s = |y: &Phase<f64, 2, 2>| sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1]));
+        while s(&integ.state()) > 1e-11 {
+            let y0 = integ.state();
+            integ.step(600.0, true).unwrap();
+            let y1 = integ.state();
+            let (t0, t1) = (integ.t_prev(), integ.t());
+            let (s0, s1) = (s(&y0), s(&y1));
+            let rate = sali_decay_rate(&HenonHeiles, &y0.q, &y1.q) / 2.0;
+            for i in 1..16 {
+                let t = t0 + (t1 - t0) * i as f64 / 16.0;
+                let st = s(&integ.interpolate(t));
+                let bound = (s0 * (-rate * (t - t0)).exp()).max(s1 * (-rate * (t1 - t)).exp());
+                assert!(st >= bound, "t = {t}: SALI {st} below the bound {bound}");
+                tightest = tightest.min(st / bound);
+                checked += 1;
+            }
+            integ.renormalise();
+        }
+        assert!(checked > 1000, "{checked} points");
+        // SALI fell from ~1 to below 1e-8 in those steps, so the points span the range.
+        assert!(
+            tightest < 3.0,
+            "the bound was never within a factor 3: {tightest}"
+        );
+    }
+
+    #[test]
+    fn stop_window_brackets_where_the_bound_dips_below() {
+        // From 1 at t = 0 and 1e-9 at t = 1 with rate 30: below 1e-8 from ln(1e8)/30 = 0.614.
+        let (lo, hi) = stop_window((0.0, 1.0), (1.0, 1e-9), 30.0, 1e-8).unwrap();
+        assert!((lo - 1e8f64.ln() / 30.0).abs() < 1e-12 && hi == 1.0);
+        // Both ends far above: nothing to check.
+        assert_eq!(stop_window((0.0, 1e-3), (0.5, 1e-3), 30.0, 1e-8), None);
+        // Both ends close enough that the middle may dip below.
+        let (lo, hi) = stop_window((0.0, 2e-8), (1.0, 2e-8), 30.0, 1e-8).unwrap();
+        let d = 2f64.ln() / 30.0;
+        assert!((lo - d).abs() < 1e-12 && (hi - (1.0 - d)).abs() < 1e-12);
+    }
+
+    /// Free-protocol runs on section points across the chaotic sea and the islands stop at the
+    /// same multiple of τ, with the same bits, whether SALI is computed at every multiple or
+    /// only inside the stop windows.
+    #[test]
+    fn stop_windows_do_not_change_free_runs() {
+        let mut config = OrbitConfig::new(0.01, 1500.0);
+        config.thresholds.early_stop = true;
+        let requests = Requests {
+            crossings: true,
+            samples_per_decade: 3,
+            ..Requests::default()
+        };
+        let mut early = 0;
+        for i in 0..12 {
+            let q2 = -0.4 + 0.09 * i as f64;
+            let y = start(q2, 0.05);
+            for method in 0..2 {
+                let run = |every| {
+                    if method == 0 {
+                        let mut integ = dop853(y, 1e-5);
+                        integrate(
+                            &HenonHeiles,
+                            &mut integ,
+                            Protocol::Free,
+                            &config,
+                            &requests,
+                            every,
+                        )
+                    } else {
+                        let mut integ = taylor(y, 1e-5);
+                        integrate(
+                            &HenonHeiles,
+                            &mut integ,
+                            Protocol::Free,
+                            &config,
+                            &requests,
+                            every,
+                        )
+                    }
+                };
+                let (a, b) = (run(false), run(true));
+                assert_eq!(a.status, b.status, "q2 = {q2}");
+                assert_eq!(a.t_reached.to_bits(), b.t_reached.to_bits(), "q2 = {q2}");
+                assert_eq!(a.sali.to_bits(), b.sali.to_bits(), "q2 = {q2}");
+                assert_eq!(a.series, b.series);
+                assert_eq!(a.crossings.len(), b.crossings.len());
+                early += (a.status == Status::ChaoticEarlyStop) as usize;
+            }
+        }
+        assert!(early >= 6, "only {early} runs stopped early");
+    }
 }
