@@ -50,10 +50,12 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     /// Scales every deviation vector to unit length (in the integrator's own precision) and
     /// returns ln of the factor removed from the first one.
     fn renormalise(&mut self) -> f64;
-    /// One accepted step ending at or before `t_end` (exactly at it when within reach); with
-    /// `dense`, the step's interpolant becomes available through [`Self::interpolate`].
-    fn step(&mut self, t_end: f64, dense: bool) -> Result<(), StepFailure>;
-    /// The state at `t` within the last step (only after a step taken with `dense`).
+    /// One accepted step ending at or before `t_end` (exactly at it when within reach).
+    fn step(&mut self, t_end: f64) -> Result<(), StepFailure>;
+    /// Makes the last step's interpolant available to [`Self::interpolate`] and
+    /// [`Self::energy_error`]; it is built only when asked for (DOP853's costs 3 evaluations).
+    fn prepare_dense(&mut self) {}
+    /// The state at `t` within the last step (after [`Self::prepare_dense`]).
     fn interpolate(&self, t: f64) -> Phase<f64, N, K>;
     /// Start of the last step.
     fn t_prev(&self) -> f64;
@@ -73,6 +75,8 @@ fn relative(dh: f64, h0: f64) -> f64 {
 pub struct Dop853Orbit<'h, H, const N: usize, const K: usize> {
     pub inner: Dop853<'h, H, N, K>,
     dense: Dense<N, K>,
+    /// Whether `dense` belongs to the last step.
+    dense_ready: bool,
     t_prev: f64,
     ham: &'h H,
     h0: f64,
@@ -84,6 +88,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853Orbit<'h, H, N
         let h0 = ham.energy(&inner.y.q, &inner.y.p);
         Dop853Orbit {
             dense: Dense::empty(),
+            dense_ready: false,
             inner,
             t_prev: t,
             ham,
@@ -106,12 +111,19 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
         self.inner.state_changed();
         ln
     }
-    fn step(&mut self, t_end: f64, dense: bool) -> Result<(), StepFailure> {
+    fn step(&mut self, t_end: f64) -> Result<(), StepFailure> {
         self.t_prev = self.inner.t;
-        self.inner
-            .step(t_end, if dense { Some(&mut self.dense) } else { None })
+        self.dense_ready = false;
+        self.inner.step(t_end, None)
+    }
+    fn prepare_dense(&mut self) {
+        if !self.dense_ready {
+            self.inner.dense_output(&mut self.dense);
+            self.dense_ready = true;
+        }
     }
     fn interpolate(&self, t: f64) -> Phase<f64, N, K> {
+        debug_assert!(self.dense_ready, "interpolate before prepare_dense");
         self.dense.at(t)
     }
     fn t_prev(&self) -> f64 {
@@ -121,7 +133,7 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
         self.inner.accepted
     }
     fn energy_error(&self, at: Option<f64>) -> f64 {
-        let y = at.map_or(self.inner.y, |t| self.dense.at(t));
+        let y = at.map_or(self.inner.y, |t| self.interpolate(t));
         relative(self.ham.energy(&y.q, &y.p) - self.h0, self.h0)
     }
 }
@@ -177,7 +189,7 @@ impl<H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> AdaptiveInte
     fn renormalise(&mut self) -> f64 {
         unit_vectors(&mut self.inner.y)
     }
-    fn step(&mut self, t_end: f64, _dense: bool) -> Result<(), StepFailure> {
+    fn step(&mut self, t_end: f64) -> Result<(), StepFailure> {
         self.inner.step(t_end)
     }
     fn interpolate(&self, t: f64) -> Phase<f64, N, K> {
@@ -293,8 +305,9 @@ impl<const K: usize> Books<'_, K> {
 /// Locates an upward crossing of q1 = 0 inside the last step from its dense output (Newton
 /// with dq1/dt = p1 inside a bisection bracket).
 fn locate_dense<I: AdaptiveIntegrator<N, K>, const N: usize, const K: usize>(
-    integ: &I,
+    integ: &mut I,
 ) -> Crossing<N> {
+    integ.prepare_dense();
     let (lo, hi) = (integ.t_prev(), integ.t());
     let (t, y) = bracketed_root(
         lo,
@@ -408,7 +421,6 @@ where
     // The time the indicators refer to at the end.
     let mut t_end_state = 0.0;
     let mut end_state = y0;
-    let want_dense = requests.crossings || protocol == Protocol::Free;
     let mut q_prev = y0.q;
     let mut sali_prev = sali((&y0.dq[0], &y0.dp[0]), (&y0.dq[1], &y0.dp[1]));
 
@@ -418,7 +430,7 @@ where
             Protocol::Free => n_final as f64 * tau,
         };
         let q1_before = integ.state().q[0];
-        if let Err(e) = integ.step(target, want_dense) {
+        if let Err(e) = integ.step(target) {
             status = match e {
                 StepFailure::StepTooSmall { .. } => Status::StepLimit,
                 StepFailure::NonFinite { .. } => Status::NonFinite,
@@ -508,6 +520,9 @@ where
                     }
                     let t = n as f64 * tau;
                     let at = (t != t1).then_some(t);
+                    if at.is_some() {
+                        integ.prepare_dense();
+                    }
                     let y = at.map_or_else(|| integ.state(), |t| integ.interpolate(t));
                     t_end_state = t;
                     end_state = y;
@@ -595,7 +610,8 @@ mod tests {
         let s = |y: &Phase<f64, 2, 2>| sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1]));
         while s(&integ.state()) > 1e-11 {
             let y0 = integ.state();
-            integ.step(600.0, true).unwrap();
+            integ.step(600.0).unwrap();
+            integ.prepare_dense();
             let y1 = integ.state();
             let (t0, t1) = (integ.t_prev(), integ.t());
             let (s0, s1) = (s(&y0), s(&y1));

@@ -343,6 +343,15 @@ impl<const N: usize, const K: usize> Dense<N, K> {
     }
 }
 
+/// The start and size of the last accepted step.
+#[derive(Clone, Copy, Debug)]
+struct LastStep<const N: usize, const K: usize> {
+    t: f64,
+    h: f64,
+    y0: Phase<f64, N, K>,
+    y1: Phase<f64, N, K>,
+}
+
 /// Why a step could not be taken.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum StepFailure {
@@ -361,6 +370,10 @@ pub struct Dop853<'h, H, const N: usize, const K: usize> {
     pub y: Phase<f64, N, K>,
     /// f(t, y), reused as the first stage of the next step (FSAL).
     f0: Phase<f64, N, K>,
+    /// The stages of the last attempt; after an accepted step, what its dense output needs
+    /// (index 12 holds the FSAL slope at its end), with the step's start in `last`.
+    k: [Phase<f64, N, K>; 16],
+    last: LastStep<N, K>,
     /// The step to try next.
     pub h: f64,
     fac_old: f64,
@@ -380,6 +393,13 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
             t,
             y,
             f0,
+            k: [Phase::zero(); 16],
+            last: LastStep {
+                t,
+                h: 0.0,
+                y0: y,
+                y1: y,
+            },
             h: 0.0,
             fac_old: 1e-4,
             rejected_last: false,
@@ -454,12 +474,12 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
             if 0.1 * h.abs() <= self.t.abs() * f64::EPSILON || h <= 0.0 {
                 return Err(StepFailure::StepTooSmall { t: self.t });
             }
-            let mut k = [Phase::<f64, N, K>::zero(); 16];
+            let k = &mut self.k;
             k[0] = self.f0;
             let rows: [&[(usize, f64)]; 11] =
                 [&A2, &A3, &A4, &A5, &A6, &A7, &A8, &A9, &A10, &A11, &A12];
             for (s, row) in rows.iter().enumerate() {
-                let ys = stage(&self.y, h, row, &k);
+                let ys = stage(&self.y, h, row, &k[..]);
                 k[s + 1] = rhs(self.ham, &ys);
             }
             self.evaluations += 11;
@@ -500,10 +520,13 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
                 self.fac_old = err.max(1e-4);
                 let f1 = rhs(self.ham, &y1);
                 self.evaluations += 1;
-                if let Some(d) = dense {
-                    k[12] = f1;
-                    self.fill_dense(d, h, &y1, &mut k);
-                }
+                k[12] = f1;
+                self.last = LastStep {
+                    t: self.t,
+                    h,
+                    y0: self.y,
+                    y1,
+                };
                 if self.rejected_last {
                     h_new = h_new.min(h);
                 }
@@ -512,6 +535,9 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
                 self.t = if last { t_end } else { self.t + h };
                 self.y = y1;
                 self.f0 = f1;
+                if let Some(d) = dense {
+                    self.dense_output(d);
+                }
                 // A step cut short to land on t_end says little about the natural step: keep
                 // the prediction made before the cut (the restart protocol feeds it back).
                 self.h = if last && h < h_try {
@@ -529,21 +555,18 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
         }
     }
 
-    fn fill_dense(
-        &mut self,
-        d: &mut Dense<N, K>,
-        h: f64,
-        y1: &Phase<f64, N, K>,
-        k: &mut [Phase<f64, N, K>; 16],
-    ) {
+    /// Fills `d` with the dense output of the last accepted step (3 more evaluations). Valid
+    /// until the next call of [`Self::step`] (a renormalisation in between does not matter).
+    pub fn dense_output(&mut self, d: &mut Dense<N, K>) {
+        let LastStep { t, h, y0, y1 } = self.last;
+        let k = &mut self.k;
         let extra: [(&[(usize, f64)], usize); 3] = [(&A14, 13), (&A15, 14), (&A16, 15)];
         for (row, idx) in extra {
-            let ys = stage(&self.y, h, row, &k[..]);
+            let ys = stage(&y0, h, row, &k[..]);
             k[idx] = rhs(self.ham, &ys);
         }
         self.evaluations += 3;
-        let y0 = self.y;
-        let mut c1 = *y1;
+        let mut c1 = y1;
         c1.axpy(-1.0, &y0);
         let mut c2 = k[0];
         c2.scale(h);
@@ -559,7 +582,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
             }
             out.scale(h);
         }
-        d.t_old = self.t;
+        d.t_old = t;
         d.h = h;
         d.c = [y0, c1, c2, c3, cs[0], cs[1], cs[2], cs[3]];
     }
