@@ -372,6 +372,32 @@ fn stop_window(
     (lo <= hi).then_some((lo, hi))
 }
 
+/// What a caller learns of one adaptive orbit while it runs, and how it stops it early (the
+/// fast-PSS engine claims the cells an orbit crosses and abandons orbits it no longer needs).
+pub trait Watch<const N: usize> {
+    /// An upward crossing, as soon as it is located (only with `Requests::crossings`).
+    fn crossing(&mut self, _crossing: &Crossing<N>) {}
+    /// Polled every [`WATCH_POLL`] steps: true abandons the orbit.
+    fn cancelled(&mut self) -> bool {
+        false
+    }
+}
+
+/// Steps between polls of [`Watch::cancelled`]: a poll reads shared state, a step costs a
+/// few hundred nanoseconds.
+pub const WATCH_POLL: u64 = 16;
+
+/// Watches nothing.
+pub struct Unwatched;
+
+impl<const N: usize> Watch<N> for Unwatched {}
+
+/// An orbit given up at a caller's request ([`Watch::cancelled`]) after this many steps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Abandoned {
+    pub steps: u64,
+}
+
 /// Integrates the orbit held by `integ` (deviation vectors already set) to `config.t_final`.
 pub fn integrate_adaptive<H, I, const N: usize, const K: usize>(
     ham: &H,
@@ -384,11 +410,36 @@ where
     H: Hamiltonian<N>,
     I: AdaptiveIntegrator<N, K>,
 {
-    integrate(ham, integ, protocol, config, requests, false)
+    integrate(
+        ham,
+        integ,
+        protocol,
+        config,
+        requests,
+        false,
+        &mut Unwatched,
+    )
+    .expect("an unwatched orbit is never abandoned")
 }
 
-/// [`integrate_adaptive`]; with `every_tau`, the free protocol computes SALI at every multiple
-/// of τ (the reference its stop window is tested against).
+/// [`integrate_adaptive`] under a [`Watch`].
+pub fn integrate_adaptive_watched<H, I, const N: usize, const K: usize>(
+    ham: &H,
+    integ: &mut I,
+    protocol: Protocol,
+    config: &OrbitConfig,
+    requests: &Requests,
+    watch: &mut impl Watch<N>,
+) -> Result<OrbitResult<N>, Abandoned>
+where
+    H: Hamiltonian<N>,
+    I: AdaptiveIntegrator<N, K>,
+{
+    integrate(ham, integ, protocol, config, requests, false, watch)
+}
+
+/// [`integrate_adaptive_watched`]; with `every_tau`, the free protocol computes SALI at every
+/// multiple of τ (the reference its stop window is tested against).
 fn integrate<H, I, const N: usize, const K: usize>(
     ham: &H,
     integ: &mut I,
@@ -396,7 +447,8 @@ fn integrate<H, I, const N: usize, const K: usize>(
     config: &OrbitConfig,
     requests: &Requests,
     every_tau: bool,
-) -> OrbitResult<N>
+    watch: &mut impl Watch<N>,
+) -> Result<OrbitResult<N>, Abandoned>
 where
     H: Hamiltonian<N>,
     I: AdaptiveIntegrator<N, K>,
@@ -442,7 +494,14 @@ where
             break;
         }
         if requests.crossings && q1_before < 0.0 && integ.state().q[0] >= 0.0 {
-            out.crossings.push(locate_dense(integ));
+            let c = locate_dense(integ);
+            watch.crossing(&c);
+            out.crossings.push(c);
+        }
+        if integ.steps() % WATCH_POLL == 0 && watch.cancelled() {
+            return Err(Abandoned {
+                steps: integ.steps(),
+            });
         }
         match protocol {
             Protocol::Restart => {
@@ -569,7 +628,7 @@ where
         out.mle = f64::NAN;
         out.class = None;
     }
-    out
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -674,7 +733,9 @@ mod tests {
                             &config,
                             &requests,
                             every,
+                            &mut Unwatched,
                         )
+                        .unwrap()
                     } else {
                         let mut integ = taylor(y, 1e-5);
                         integrate(
@@ -684,7 +745,9 @@ mod tests {
                             &config,
                             &requests,
                             every,
+                            &mut Unwatched,
                         )
+                        .unwrap()
                     }
                 };
                 let (a, b) = (run(false), run(true));

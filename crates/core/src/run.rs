@@ -1,7 +1,9 @@
 //! One entry point for every method: a [`MethodRun`] says which integrator, with which τ, δ and
 //! protocol, and [`run_orbit`] dispatches to the tangent-map, DOP853 or Taylor driver.
 
-use crate::adaptive::{integrate_adaptive, Dop853Orbit, Protocol, TaylorOrbit};
+use crate::adaptive::{
+    integrate_adaptive_watched, Abandoned, Dop853Orbit, Protocol, TaylorOrbit, Unwatched, Watch,
+};
 use crate::dd::DoubleDouble;
 use crate::dop853::{Dop853, Dop853Config};
 use crate::method::Method;
@@ -45,25 +47,44 @@ pub fn run_orbit<H: TaylorSeries<N>, const N: usize, const K: usize>(
     config: &OrbitConfig,
     requests: &Requests,
 ) -> OrbitResult<N> {
+    if let Method::TangentMap(scheme) = &run.method {
+        let map = TangentMap::new(ham, scheme, config.tau);
+        return integrate::<H, N, K>(&map, q, p, config, requests);
+    }
+    run_adaptive::<H, N, K>(ham, run, energy, q, p, config, requests, &mut Unwatched)
+        .expect("an unwatched orbit is never abandoned")
+}
+
+/// [`run_orbit`] for the adaptive methods, under a [`Watch`] that sees the crossings as they
+/// are found and may abandon the orbit. Tangent-map orbits go through
+/// [`integrate`](crate::orbit::integrate) or the batched driver instead.
+#[allow(clippy::too_many_arguments)]
+pub fn run_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
+    ham: &H,
+    run: &MethodRun,
+    energy: f64,
+    q: [f64; N],
+    p: [f64; N],
+    config: &OrbitConfig,
+    requests: &Requests,
+    watch: &mut impl Watch<N>,
+) -> Result<OrbitResult<N>, Abandoned> {
     let (dq, dp) = initial_vectors::<N, K>(config.deviation);
     let delta = || run.delta.expect("adaptive methods carry a tolerance");
     match &run.method {
-        Method::TangentMap(scheme) => {
-            let map = TangentMap::new(ham, scheme, config.tau);
-            integrate::<H, N, K>(&map, q, p, config, requests)
-        }
+        Method::TangentMap(_) => panic!("run_adaptive is for adaptive methods"),
         Method::Dop853 => {
             let y = Phase { q, p, dq, dp };
             let mut integ = Dop853Orbit::new(
                 ham,
                 Dop853::new(ham, Dop853Config::with_delta(delta()), 0.0, y),
             );
-            integrate_adaptive(ham, &mut integ, run.protocol, config, requests)
+            integrate_adaptive_watched(ham, &mut integ, run.protocol, config, requests, watch)
         }
         Method::Taylor => {
             let y = Phase { q, p, dq, dp };
             let mut integ = TaylorOrbit::new(ham, Taylor::new(ham, delta(), 0.0, y));
-            integrate_adaptive(ham, &mut integ, run.protocol, config, requests)
+            integrate_adaptive_watched(ham, &mut integ, run.protocol, config, requests, watch)
         }
         Method::TaylorDd => {
             let y = Phase {
@@ -73,7 +94,7 @@ pub fn run_orbit<H: TaylorSeries<N>, const N: usize, const K: usize>(
                 dp: dp.map(|v| v.map(DoubleDouble::from_f64)),
             };
             let mut integ = TaylorOrbit::new(ham, Taylor::new(ham, delta(), 0.0, y));
-            integrate_adaptive(ham, &mut integ, run.protocol, config, requests)
+            integrate_adaptive_watched(ham, &mut integ, run.protocol, config, requests, watch)
         }
     }
 }

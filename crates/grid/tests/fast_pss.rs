@@ -6,7 +6,7 @@ use salient_core::method::Method;
 use salient_core::orbit::OrbitConfig;
 use salient_core::run::MethodRun;
 use salient_core::Scheme;
-use salient_grid::{run_embedded, CellRun, Counts, Grid, Mode};
+use salient_grid::{integrate_cells, run_embedded, CellRun, Counts, Grid, Ledger, Mode};
 
 fn paper_grid(n: usize) -> Grid {
     let q2 = (
@@ -100,18 +100,41 @@ fn labels_do_not_depend_on_threads_or_window() {
         }
         assert_eq!(cells(&a), cells(&b), "{threads} threads");
     }
-    // Adaptive methods (rounds, one orbit per task) agree across threads and windows;
-    // full mode's rounds give the same labels for any window.
+    // Adaptive methods stream one orbit per thread, claiming crossed cells and abandoning
+    // orbits as they go: the labels are those of the sequential rule (rounds of one cell,
+    // the worker's path), with one thread or two.
     let mut dop = run.clone();
     dop.run = MethodRun {
         method: Method::Dop853,
         delta: Some(1e-8),
         protocol: Protocol::Restart,
     };
-    dop.config = OrbitConfig::new(0.5, 200.0);
-    let x = pool(2).install(|| run_embedded(&grid, &dop, Mode::FastPss, 8, |_| {}));
-    let y = pool(1).install(|| run_embedded(&grid, &dop, Mode::FastPss, 1, |_| {}));
-    assert_eq!(cells(&x), cells(&y));
+    dop.config = OrbitConfig::new(0.5, 500.0);
+    let mut taylor = dop.clone();
+    taylor.run.method = Method::Taylor;
+    for adaptive in [&dop, &taylor] {
+        let mut sequential = Ledger::new(&grid, Mode::FastPss);
+        while !sequential.done() {
+            let next = sequential.needed(1, &|_| false);
+            for o in integrate_cells(&grid, adaptive, Mode::FastPss, &next) {
+                sequential.offer(o);
+            }
+        }
+        for threads in [1, 2] {
+            let x =
+                pool(threads).install(|| run_embedded(&grid, adaptive, Mode::FastPss, 8, |_| {}));
+            for c in 0..grid.cells() as u32 {
+                let (l, m) = (sequential.label(c), x.label(c));
+                assert_eq!(
+                    l.map(|l| (l.class, l.source, l.sali.to_bits())),
+                    m.map(|l| (l.class, l.source, l.sali.to_bits())),
+                    "{:?}, {threads} threads",
+                    adaptive.run.method
+                );
+            }
+            assert_eq!(cells(&sequential), cells(&x));
+        }
+    }
     let f1 = pool(2).install(|| run_embedded(&grid, &dop, Mode::Full, 64, |_| {}));
     let f2 = pool(1).install(|| run_embedded(&grid, &dop, Mode::Full, 1, |_| {}));
     assert_eq!(f1.dropped + f2.dropped, 0, "full mode never drops");
