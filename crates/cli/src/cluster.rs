@@ -31,8 +31,9 @@ pub struct CoordinatorArgs {
     /// Seconds between progress log lines of each running run.
     #[arg(long, default_value_t = 10.0)]
     progress_seconds: f64,
-    /// Fast PSS: cells per worker thread in one lease (smaller: fresher claims, less dropped
-    /// work; larger: fewer round trips).
+    /// Fast PSS: cells per worker thread in one lease for tangent-map methods (smaller:
+    /// fresher claims, less dropped work; larger: fewer round trips); adaptive methods, one
+    /// orbit per thread instead of a batch of 4, get a quarter of it.
     #[arg(long, default_value_t = 8)]
     lease_cells_per_thread: usize,
     /// Refuse submitted specs whose grid holds more cells than this.

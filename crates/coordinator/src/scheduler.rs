@@ -20,7 +20,9 @@ pub struct Config {
     pub lease: Duration,
     /// How often workers poll while busy.
     pub poll: Duration,
-    /// Fast PSS: cells per worker thread in one lease. Small leases are judged on fresher
+    /// Fast PSS: cells per worker thread in one lease, for tangent-map methods (whose
+    /// threads run `executor::LANES` orbits at a time); adaptive methods run one orbit per
+    /// thread and get a `LANES`-th of it, at least 1. Small leases are judged on fresher
     /// claims (less dropped work); large ones cost fewer round trips.
     pub lease_cells_per_thread: usize,
     /// Largest grid (cells in all) a submitted spec may ask for.
@@ -70,6 +72,9 @@ struct Run {
     /// report must still change nothing).
     stored: Vec<bool>,
     checkpoints: usize,
+    /// Whether a worker thread runs one orbit at a time (adaptive methods) rather than a
+    /// batch of lanes (tangent-map methods); fast-PSS leases are sized by it.
+    one_orbit_per_thread: bool,
     tiles: Vec<Tile>,
     cpu_ns: u64,
     started: Option<Instant>,
@@ -130,6 +135,10 @@ impl Run {
             ledger: Ledger::new(&grid, spec.grid.mode),
             stored: vec![false; grid.cells()],
             checkpoints: cell_run.checkpoint_steps().len(),
+            one_orbit_per_thread: !matches!(
+                cell_run.run.method,
+                salient_core::Method::TangentMap(_)
+            ),
             tiles: (0..grid.tile_count()).map(|_| Tile::default()).collect(),
             grid,
             cpu_ns: 0,
@@ -755,8 +764,13 @@ impl Scheduler {
                 // Fast PSS: lease a tile's wanted cells a worker's batch at a time, each lease
                 // judged on the latest claims, so speculation stays about one batch per worker
                 // (a tile with wanted cells left is leased again once this lease finishes).
-                if self.jobs[&key.0].spec.grid.mode == salient_grid::Mode::FastPss {
-                    cells.truncate((threads * self.cfg.lease_cells_per_thread).max(1));
+                let job = &self.jobs[&key.0];
+                if job.spec.grid.mode == salient_grid::Mode::FastPss {
+                    let mut per_thread = self.cfg.lease_cells_per_thread;
+                    if job.runs[key.1 as usize].one_orbit_per_thread {
+                        per_thread = (per_thread / salient_grid::executor::LANES).max(1);
+                    }
+                    cells.truncate((threads * per_thread).max(1));
                 }
                 leases.push(self.lease(worker, key, cells)?);
             }

@@ -95,6 +95,9 @@ pub struct Jet<T, const N: usize, const K: usize> {
     pub dq: [[Series<T>; N]; K],
     pub dp: [[Series<T>; N]; K],
     pub order: usize,
+    /// 1/(k + 1) in `T`'s precision, computed once (a double-double division is dozens of
+    /// operations, and the recursion needs one per order and step).
+    inverse: Series<T>,
 }
 
 impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
@@ -106,6 +109,7 @@ impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
             dq: [z; K],
             dp: [z; K],
             order: 0,
+            inverse: core::array::from_fn(|k| T::ratio(1.0, (k + 1) as f64)),
         }
     }
 
@@ -122,7 +126,7 @@ impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
             }
         }
         for k in 0..p {
-            let inv = T::ratio(1.0, (k + 1) as f64);
+            let inv = self.inverse[k];
             let g = ham.grad_coeff(&self.q, k);
             for i in 0..N {
                 self.q[i][k + 1] = self.p[i][k] * inv;
@@ -183,7 +187,9 @@ pub fn order_for(delta: f64) -> usize {
 pub struct Taylor<'h, H, T, const N: usize, const K: usize> {
     ham: &'h H,
     pub delta: f64,
-    pub order: usize,
+    order: usize,
+    /// The Jorba–Zou factor e^{−2} e^{−0.7/(p−1)} of the natural step, for this order.
+    step_factor: f64,
     /// Time, in `T` so that steps landing on t_end are exact in extended precision too.
     t: T,
     t_prev: T,
@@ -194,10 +200,12 @@ pub struct Taylor<'h, H, T, const N: usize, const K: usize> {
 
 impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'h, H, T, N, K> {
     pub fn new(ham: &'h H, delta: f64, t0: f64, y: Phase<T, N, K>) -> Self {
+        let order = order_for(delta);
         Taylor {
             ham,
             delta,
-            order: order_for(delta),
+            order,
+            step_factor: (-2.0f64).exp() * (-0.7 / (order as f64 - 1.0)).exp(),
             t: T::splat(t0),
             t_prev: T::splat(t0),
             y,
@@ -208,6 +216,11 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
 
     pub fn t(&self) -> f64 {
         self.t.to_f64()
+    }
+
+    /// The Jorba–Zou order in use.
+    pub fn order(&self) -> usize {
+        self.order
     }
 
     pub fn t_prev(&self) -> f64 {
@@ -227,7 +240,21 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
             }
         };
         let r = rho(p - 1).min(rho(p));
-        r * (-2.0f64).exp() * (-0.7 / (p as f64 - 1.0)).exp()
+        r * self.step_factor
+    }
+
+    /// Whether the natural step surely exceeds `reach` (> 0), decided without the roots of
+    /// [`Self::natural_step`]: ‖x_[j]‖ ≤ ½ (c/reach)^j for j = p − 1, p puts ρ_j c at least
+    /// 2^{1/j} ≥ 1.4 % above `reach`, far beyond the rounding of either test. In the restart
+    /// protocol at small τ nearly every step is cut to τ and this is all it needs.
+    fn natural_step_exceeds(&self, reach: f64) -> bool {
+        let p = self.order;
+        let scale = self.jet.norm_inf(0).max(1.0);
+        let x = self.step_factor / reach;
+        x.is_finite()
+            && [p - 1, p]
+                .into_iter()
+                .all(|j| self.jet.norm_inf(j) / scale <= 0.5 * x.powi(j as i32))
     }
 
     /// One step ending at or before `t_end`, exactly at it when within reach.
@@ -238,12 +265,16 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
             return Err(StepFailure::NonFinite { t: self.t() });
         }
         self.jet.compute(self.ham, &self.y, self.order);
+        let remaining = T::splat(t_end) - self.t;
         // Infinite when the series terminates (a polynomial solution): then any step is exact.
-        let h_nat = self.natural_step();
+        let h_nat = if self.natural_step_exceeds(remaining.to_f64()) {
+            f64::INFINITY
+        } else {
+            self.natural_step()
+        };
         if h_nat.is_nan() {
             return Err(StepFailure::NonFinite { t: self.t() });
         }
-        let remaining = T::splat(t_end) - self.t;
         let (h, last) = if self.t() + h_nat >= t_end {
             (remaining, true)
         } else {

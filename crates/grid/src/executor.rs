@@ -13,7 +13,7 @@ use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
 };
-use salient_core::run::{run_adaptive, run_orbit, MethodRun};
+use salient_core::run::{run_adaptive, MethodRun};
 use salient_core::section::on_section;
 use salient_core::section::{locate_upward_lanes, Crossing};
 use salient_core::{HenonHeiles, TangentMap};
@@ -366,58 +366,39 @@ pub fn integrate_cells_with(
     let ham = HenonHeiles;
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
-    match &cell_run.run.method {
-        Method::TangentMap(scheme) => {
-            let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
-            let cursor = AtomicUsize::new(0);
-            let drivers = rayon::current_num_threads()
-                .min(cells.len().div_ceil(lanes(mode, cell_run.config.tau)));
-            let finished: Vec<(usize, Outcome)> = (0..drivers)
-                .into_par_iter()
-                .flat_map_iter(|_| {
-                    let mut feed = CellsFeed {
-                        grid,
-                        cell_run,
-                        checkpoints: &checkpoints,
-                        cells,
-                        cursor: &cursor,
-                        claims,
-                        done: Vec::new(),
-                    };
-                    drive(&map, &cell_run.config, &requests, mode, &mut feed);
-                    feed.done
-                })
-                .collect();
-            let mut out: Vec<Option<Outcome>> = vec![None; cells.len()];
-            for (i, o) in finished {
-                out[i] = Some(o);
+    let map = match &cell_run.run.method {
+        Method::TangentMap(scheme) => Some(TangentMap::new(&ham, scheme, cell_run.config.tau)),
+        _ => None,
+    };
+    // A batched driver fills `lanes` orbits at a time; an adaptive one runs one.
+    let per_driver = map.as_ref().map_or(1, |m| lanes(mode, m.tau()));
+    let cursor = AtomicUsize::new(0);
+    let drivers = rayon::current_num_threads().min(cells.len().div_ceil(per_driver));
+    let finished: Vec<(usize, Outcome)> = (0..drivers)
+        .into_par_iter()
+        .flat_map_iter(|_| {
+            let mut feed = CellsFeed {
+                grid,
+                cell_run,
+                checkpoints: &checkpoints,
+                cells,
+                cursor: &cursor,
+                claims,
+                done: Vec::new(),
+            };
+            match &map {
+                Some(map) => drive(map, &cell_run.config, &requests, mode, &mut feed),
+                None => drive_adaptive(grid, cell_run, &requests, &mut feed),
             }
-            // Abandoned orbits report nothing.
-            out.into_iter().flatten().collect()
-        }
-        _ => cells
-            .par_iter()
-            .map(|&cell| {
-                let (q, p) = initial_point(grid, cell);
-                let r = run_orbit::<_, 2, 2>(
-                    &ham,
-                    &cell_run.run,
-                    grid.energy,
-                    q,
-                    p,
-                    &cell_run.config,
-                    &requests,
-                );
-                outcome(
-                    cell_run,
-                    &checkpoints,
-                    cell,
-                    &r,
-                    crossed_cells(grid, &r.crossings),
-                )
-            })
-            .collect(),
+            feed.done
+        })
+        .collect();
+    let mut out: Vec<Option<Outcome>> = vec![None; cells.len()];
+    for (i, o) in finished {
+        out[i] = Some(o);
     }
+    // Abandoned orbits report nothing.
+    out.into_iter().flatten().collect()
 }
 
 /// What the embedded fast-PSS engine shares between its drivers.
