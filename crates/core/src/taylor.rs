@@ -158,22 +158,28 @@ impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
         m
     }
 
-    /// Σ_k x_[k] s^k by Horner's rule.
+    /// Σ_k x_[k] s^k by Horner's rule, every component's chain advanced one order at a time:
+    /// the chains are independent, and interleaved they overlap in the pipeline (a
+    /// double-double multiply-add is a long chain of dependent operations).
     pub fn eval(&self, s: T) -> Phase<T, N, K> {
         let p = self.order;
-        let horner = |c: &Series<T>| {
-            let mut acc = c[p];
-            for k in (0..p).rev() {
-                acc = acc.mul_add(s, c[k]);
-            }
-            acc
+        let mut y = Phase {
+            q: core::array::from_fn(|i| self.q[i][p]),
+            p: core::array::from_fn(|i| self.p[i][p]),
+            dq: core::array::from_fn(|v| core::array::from_fn(|i| self.dq[v][i][p])),
+            dp: core::array::from_fn(|v| core::array::from_fn(|i| self.dp[v][i][p])),
         };
-        Phase {
-            q: core::array::from_fn(|i| horner(&self.q[i])),
-            p: core::array::from_fn(|i| horner(&self.p[i])),
-            dq: core::array::from_fn(|k| core::array::from_fn(|i| horner(&self.dq[k][i]))),
-            dp: core::array::from_fn(|k| core::array::from_fn(|i| horner(&self.dp[k][i]))),
+        for k in (0..p).rev() {
+            for i in 0..N {
+                y.q[i] = y.q[i].mul_add(s, self.q[i][k]);
+                y.p[i] = y.p[i].mul_add(s, self.p[i][k]);
+                for v in 0..K {
+                    y.dq[v][i] = y.dq[v][i].mul_add(s, self.dq[v][i][k]);
+                    y.dp[v][i] = y.dp[v][i].mul_add(s, self.dp[v][i][k]);
+                }
+            }
         }
+        y
     }
 }
 
@@ -188,8 +194,10 @@ pub struct Taylor<'h, H, T, const N: usize, const K: usize> {
     ham: &'h H,
     pub delta: f64,
     order: usize,
-    /// The Jorba–Zou factor e^{−2} e^{−0.7/(p−1)} of the natural step, for this order.
-    step_factor: f64,
+    /// The Jorba–Zou factors e^{−2} and e^{−0.7/(p−1)} of the natural step, for this order
+    /// (applied one after the other, as the rule is written: their product would round
+    /// differently).
+    step_factors: (f64, f64),
     /// Time, in `T` so that steps landing on t_end are exact in extended precision too.
     t: T,
     t_prev: T,
@@ -205,7 +213,7 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
             ham,
             delta,
             order,
-            step_factor: (-2.0f64).exp() * (-0.7 / (order as f64 - 1.0)).exp(),
+            step_factors: ((-2.0f64).exp(), (-0.7 / (order as f64 - 1.0)).exp()),
             t: T::splat(t0),
             t_prev: T::splat(t0),
             y,
@@ -240,7 +248,7 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
             }
         };
         let r = rho(p - 1).min(rho(p));
-        r * self.step_factor
+        r * self.step_factors.0 * self.step_factors.1
     }
 
     /// Whether the natural step surely exceeds `reach` (> 0), decided without the roots of
@@ -250,11 +258,12 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
     fn natural_step_exceeds(&self, reach: f64) -> bool {
         let p = self.order;
         let scale = self.jet.norm_inf(0).max(1.0);
-        let x = self.step_factor / reach;
+        let x = self.step_factors.0 * self.step_factors.1 / reach;
         x.is_finite()
-            && [p - 1, p]
-                .into_iter()
-                .all(|j| self.jet.norm_inf(j) / scale <= 0.5 * x.powi(j as i32))
+            && [p - 1, p].into_iter().all(|j| {
+                let n = self.jet.norm_inf(j) / scale;
+                n.is_finite() && n <= 0.5 * x.powi(j as i32)
+            })
     }
 
     /// One step ending at or before `t_end`, exactly at it when within reach.
@@ -267,7 +276,9 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
         self.jet.compute(self.ham, &self.y, self.order);
         let remaining = T::splat(t_end) - self.t;
         // Infinite when the series terminates (a polynomial solution): then any step is exact.
-        let h_nat = if self.natural_step_exceeds(remaining.to_f64()) {
+        // The reach in f64, as the test below sees it (`remaining` may differ in extended
+        // precision).
+        let h_nat = if self.natural_step_exceeds(t_end - self.t()) {
             f64::INFINITY
         } else {
             self.natural_step()
