@@ -57,6 +57,21 @@ pub trait TaylorSeries<const N: usize>: Hamiltonian<N> {
     fn grad_coeff<T: Real>(&self, q: &[Series<T>; N], k: usize) -> [T; N];
     /// Coefficient k of D²V(q(t))·u(t), given the coefficients 0..=k of q and u.
     fn hess_vec_coeff<T: Real>(&self, q: &[Series<T>; N], u: &[Series<T>; N], k: usize) -> [T; N];
+    /// Coefficient k of ∇V and of D²V·u for every deviation vector u, the same numbers as
+    /// [`Self::grad_coeff`] and [`Self::hess_vec_coeff`]; an implementation may compute them
+    /// in one pass, so that the independent sums overlap.
+    #[inline(always)]
+    fn all_coeffs<T: Real, const K: usize>(
+        &self,
+        q: &[Series<T>; N],
+        u: &[[Series<T>; N]; K],
+        k: usize,
+    ) -> ([T; N], [[T; N]; K]) {
+        (
+            self.grad_coeff(q, k),
+            core::array::from_fn(|v| self.hess_vec_coeff(q, &u[v], k)),
+        )
+    }
 }
 
 impl TaylorSeries<2> for HenonHeiles {
@@ -84,6 +99,39 @@ impl TaylorSeries<2> for HenonHeiles {
         }
         let two = T::splat(2.0);
         [two.mul_add(s1, x[k]), two.mul_add(s2, y[k])]
+    }
+
+    #[inline(always)]
+    fn all_coeffs<T: Real, const K: usize>(
+        &self,
+        q: &[Series<T>; 2],
+        u: &[[Series<T>; 2]; K],
+        k: usize,
+    ) -> ([T; 2], [[T; 2]; K]) {
+        // The sums of grad_coeff and of every hess_vec_coeff in one pass over j, each summed
+        // in the same order as there (same bits); in double-double each sum is a long chain
+        // of dependent operations, and side by side they overlap.
+        let (a, b) = (&q[0], &q[1]);
+        let (mut s12, mut sd) = (a[0] * b[k], (a[0] - b[0]) * (a[k] + b[k]));
+        let mut s1: [T; K] = core::array::from_fn(|v| b[0] * u[v][0][k] + a[0] * u[v][1][k]);
+        let mut s2: [T; K] = core::array::from_fn(|v| a[0] * u[v][0][k] - b[0] * u[v][1][k]);
+        for j in 1..=k {
+            s12 = a[j].mul_add(b[k - j], s12);
+            sd = (a[j] - b[j]).mul_add(a[k - j] + b[k - j], sd);
+            for v in 0..K {
+                let (x, y) = (&u[v][0], &u[v][1]);
+                s1[v] = b[j].mul_add(x[k - j], a[j].mul_add(y[k - j], s1[v]));
+                s2[v] = a[j].mul_add(x[k - j], (-b[j]).mul_add(y[k - j], s2[v]));
+            }
+        }
+        let two = T::splat(2.0);
+        (
+            [two.mul_add(s12, a[k]), b[k] + sd],
+            core::array::from_fn(|v| {
+                let (x, y) = (&u[v][0], &u[v][1]);
+                [two.mul_add(s1[v], x[k]), two.mul_add(s2[v], y[k])]
+            }),
+        )
     }
 }
 
@@ -127,13 +175,12 @@ impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
         }
         for k in 0..p {
             let inv = self.inverse[k];
-            let g = ham.grad_coeff(&self.q, k);
+            let (g, hvs) = ham.all_coeffs(&self.q, &self.dq, k);
             for i in 0..N {
                 self.q[i][k + 1] = self.p[i][k] * inv;
                 self.p[i][k + 1] = -(g[i] * inv);
             }
-            for v in 0..K {
-                let hv = ham.hess_vec_coeff(&self.q, &self.dq[v], k);
+            for (v, hv) in hvs.iter().enumerate() {
                 for i in 0..N {
                     self.dq[v][i][k + 1] = self.dp[v][i][k] * inv;
                     self.dp[v][i][k + 1] = -(hv[i] * inv);
@@ -317,6 +364,33 @@ mod tests {
         assert_eq!(order_for(1e-16), 20);
         assert_eq!(order_for(1e-15), 18);
         assert_eq!(order_for(1e-28), 33);
+    }
+
+    /// Hénon–Heiles' one-pass coefficients are the separate ones, bit for bit, in f64 and in
+    /// double-double.
+    #[test]
+    fn one_pass_coefficients_equal_the_separate_ones() {
+        fn check<T: Scalar + PartialEq + core::fmt::Debug>(from: impl Fn(f64) -> T) {
+            let mut x = 0.3f64;
+            let mut next = || {
+                // A fixed, irregular sequence in (−1, 1).
+                x = (x * 3.7 + 0.19).fract();
+                from(2.0 * x - 1.0)
+            };
+            let q: [Series<T>; 2] = core::array::from_fn(|_| core::array::from_fn(|_| next()));
+            let u: [[Series<T>; 2]; 3] = core::array::from_fn(|_| {
+                core::array::from_fn(|_| core::array::from_fn(|_| next()))
+            });
+            for k in 0..12 {
+                let (g, h) = HenonHeiles.all_coeffs(&q, &u, k);
+                assert_eq!(g, HenonHeiles.grad_coeff(&q, k), "k = {k}");
+                for v in 0..3 {
+                    assert_eq!(h[v], HenonHeiles.hess_vec_coeff(&q, &u[v], k), "k = {k}");
+                }
+            }
+        }
+        check(|x| x);
+        check(|x| DoubleDouble::from_f64(x) * DoubleDouble::from_f64(1.0 + x * 1e-9));
     }
 
     #[test]
