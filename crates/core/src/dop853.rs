@@ -513,9 +513,17 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
             if !err.is_finite() {
                 return Err(StepFailure::NonFinite { t: self.t });
             }
-            let fac11 = err.powf(1.0 / 8.0);
-            let fac = (fac11 / c.safe).clamp(1.0 / c.fac_max, 1.0 / c.fac_min);
-            let mut h_new = h / fac;
+            let fac11 = || err.powf(1.0 / 8.0);
+            let rejected_last = self.rejected_last;
+            let predict = || {
+                let fac = (fac11() / c.safe).clamp(1.0 / c.fac_max, 1.0 / c.fac_min);
+                let h_new = h / fac;
+                if rejected_last {
+                    h_new.min(h)
+                } else {
+                    h_new
+                }
+            };
             if err <= 1.0 {
                 self.fac_old = err.max(1e-4);
                 let f1 = rhs(self.ham, &y1);
@@ -527,9 +535,6 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
                     y0: self.y,
                     y1,
                 };
-                if self.rejected_last {
-                    h_new = h_new.min(h);
-                }
                 self.rejected_last = false;
                 self.accepted += 1;
                 self.t = if last { t_end } else { self.t + h };
@@ -540,14 +545,20 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
                 }
                 // A step cut short to land on t_end says little about the natural step: keep
                 // the prediction made before the cut (the restart protocol feeds it back).
+                // A prediction is at most h·fac_max, so when that stays below h_try the
+                // prediction (a root of err) is not needed: the restart protocol at small τ.
                 self.h = if last && h < h_try {
-                    h_new.max(h_try)
+                    if h * c.fac_max * (1.0 + 4.0 * f64::EPSILON) < h_try {
+                        h_try
+                    } else {
+                        predict().max(h_try)
+                    }
                 } else {
-                    h_new
+                    predict()
                 };
                 return Ok(());
             }
-            self.h = h / (1.0 / c.fac_min).min(fac11 / c.safe);
+            self.h = h / (1.0 / c.fac_min).min(fac11() / c.safe);
             self.rejected_last = true;
             if self.accepted >= 1 {
                 self.rejected += 1;
