@@ -414,6 +414,20 @@ struct Engine<'a, P> {
     checkpoints: &'a [u64],
     claims: &'a Claims,
     shared: &'a Mutex<Shared<P>>,
+    /// Set when a thread of the run panicked: its cell stays marked running, so the others
+    /// would wait for it forever; they stop instead, and the panic surfaces.
+    failed: AtomicBool,
+}
+
+/// Marks the engine failed if the thread holding it unwinds.
+struct FailOnPanic<'a>(&'a AtomicBool);
+
+impl Drop for FailOnPanic<'_> {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            self.0.store(true, Ordering::Relaxed);
+        }
+    }
 }
 
 /// What a lane asking for work gets from [`Engine::take_needed`].
@@ -431,6 +445,9 @@ impl<P: FnMut(&Ledger)> Engine<'_, P> {
     /// drivers spent 44 % of a τ = 0.01 run searching), so it is repeated only after an
     /// orbit stops.
     fn take_needed(&self, dry_since: &mut Option<u64>) -> Needed {
+        if self.failed.load(Ordering::Relaxed) {
+            return Needed::Done;
+        }
         let stopped = self.claims.stopped.load(Ordering::Acquire);
         if *dry_since == Some(stopped) {
             return Needed::NotNow;
@@ -913,9 +930,11 @@ pub fn run_embedded(
         checkpoints: &checkpoints,
         claims: &claims,
         shared: &shared,
+        failed: AtomicBool::new(false),
     };
     let Method::TangentMap(scheme) = &cell_run.run.method else {
         rayon::broadcast(|_| {
+            let _guard = FailOnPanic(&engine.failed);
             let mut feed = LedgerFeed {
                 engine: &engine,
                 book: CrossingBook::default(),
@@ -935,6 +954,7 @@ pub fn run_embedded(
     };
     let pipes: Vec<Pipe> = (0..pairs).map(|_| Pipe::default()).collect();
     rayon::broadcast(|ctx| {
+        let _guard = FailOnPanic(&engine.failed);
         let i = ctx.index();
         match pipes.get(i / 2) {
             Some(pipe) if i % 2 == 0 => {
