@@ -709,6 +709,25 @@ mod tests {
         assert!((lo - d).abs() < 1e-12 && (hi - (1.0 - d)).abs() < 1e-12);
     }
 
+    fn free_run<I: AdaptiveIntegrator<2, 2>>(
+        mut integ: I,
+        config: &OrbitConfig,
+        requests: &Requests,
+        every_tau: bool,
+    ) -> OrbitResult<2> {
+        let (ham, free) = (&HenonHeiles, Protocol::Free);
+        integrate(
+            ham,
+            &mut integ,
+            free,
+            config,
+            requests,
+            every_tau,
+            &mut Unwatched,
+        )
+        .unwrap()
+    }
+
     /// Free-protocol runs on section points across the chaotic sea and the islands stop at the
     /// same multiple of τ, with the same bits, whether SALI is computed at every multiple or
     /// only inside the stop windows.
@@ -728,29 +747,9 @@ mod tests {
             for method in 0..2 {
                 let run = |every| {
                     if method == 0 {
-                        let mut integ = dop853(y, 1e-5);
-                        integrate(
-                            &HenonHeiles,
-                            &mut integ,
-                            Protocol::Free,
-                            &config,
-                            &requests,
-                            every,
-                            &mut Unwatched,
-                        )
-                        .unwrap()
+                        free_run(dop853(y, 1e-5), &config, &requests, every)
                     } else {
-                        let mut integ = taylor(y, 1e-5);
-                        integrate(
-                            &HenonHeiles,
-                            &mut integ,
-                            Protocol::Free,
-                            &config,
-                            &requests,
-                            every,
-                            &mut Unwatched,
-                        )
-                        .unwrap()
+                        free_run(taylor(y, 1e-5), &config, &requests, every)
                     }
                 };
                 let (a, b) = (run(false), run(true));
