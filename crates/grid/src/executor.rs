@@ -222,14 +222,17 @@ impl Claims {
         }
     }
 
+    /// The canonical position of the earliest orbit seen crossing `cell`, if it lies before
+    /// the cell in canonical order.
+    fn crosser(&self, cell: u32) -> Option<u32> {
+        let by = self.crossed_by[cell as usize].load(Ordering::Relaxed);
+        (by < self.position[cell as usize]).then_some(by)
+    }
+
     /// The cell of the earliest orbit seen crossing `cell` while running, if it lies before the
     /// cell in canonical order and still runs.
     fn running_crosser(&self, grid: &Grid, cell: u32) -> Option<u32> {
-        let by = self.crossed_by[cell as usize].load(Ordering::Relaxed);
-        if by >= self.position[cell as usize] {
-            return None;
-        }
-        let from = grid.canonical()[by as usize];
+        let from = grid.canonical()[self.crosser(cell)? as usize];
         self.is_running(from).then_some(from)
     }
 
@@ -281,6 +284,10 @@ struct CellsFeed<'a> {
     cells: &'a [u32],
     cursor: &'a AtomicUsize,
     claims: Option<&'a Claims>,
+    /// The cells whose orbits finished in this call, by any driver: their outcomes go out
+    /// with the rest, so a cell one of them crossed is as good as claimed (a driver running
+    /// one orbit at a time would otherwise integrate it after its crosser finished).
+    finished: &'a Mutex<Vec<u32>>,
     /// (position in `cells`, outcome) of the orbits this driver finished.
     done: Vec<(usize, Outcome)>,
 }
@@ -295,7 +302,13 @@ impl BatchFeed<2> for CellsFeed<'_> {
             if let Some(claims) = self.claims {
                 // Certain or probable to be labelled by another orbit: left without an outcome,
                 // so the ledger's owner integrates it later if it still needs it.
-                if claims.is_claimed(cell) || claims.running_crosser(self.grid, cell).is_some() {
+                if claims.is_claimed(cell)
+                    || claims.running_crosser(self.grid, cell).is_some()
+                    || claims.crosser(cell).is_some_and(|by| {
+                        let from = self.grid.canonical()[by as usize];
+                        self.finished.lock().expect("finished").contains(&from)
+                    })
+                {
                     continue;
                 }
                 claims.set_running(cell, true);
@@ -306,6 +319,7 @@ impl BatchFeed<2> for CellsFeed<'_> {
     }
     fn finished(&mut self, i: usize, r: OrbitResult<2>) {
         if let Some(claims) = self.claims {
+            self.finished.lock().expect("finished").push(self.cells[i]);
             claims.set_running(self.cells[i], false);
         }
         let visited = crossed_cells(self.grid, &r.crossings);
@@ -373,6 +387,7 @@ pub fn integrate_cells_with(
     // A batched driver fills `lanes` orbits at a time; an adaptive one runs one.
     let per_driver = map.as_ref().map_or(1, |m| lanes(mode, m.tau()));
     let cursor = AtomicUsize::new(0);
+    let finished = Mutex::new(Vec::new());
     let drivers = rayon::current_num_threads().min(cells.len().div_ceil(per_driver));
     let finished: Vec<(usize, Outcome)> = (0..drivers)
         .into_par_iter()
@@ -384,6 +399,7 @@ pub fn integrate_cells_with(
                 cells,
                 cursor: &cursor,
                 claims,
+                finished: &finished,
                 done: Vec::new(),
             };
             match &map {

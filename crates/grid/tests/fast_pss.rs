@@ -148,48 +148,59 @@ fn labels_do_not_depend_on_threads_or_window() {
 fn worker_leases_skip_claimed_and_crossed_cells_without_changing_outcomes() {
     use salient_grid::executor::{integrate_cells_with, Claims};
     let grid = paper_grid(100);
-    let run = tm("sbab2c", 0.5, 2e3);
-    let cells: Vec<u32> = grid.canonical()[..64].to_vec();
-    let plain =
-        pool(2).install(|| salient_grid::integrate_cells(&grid, &run, Mode::FastPss, &cells));
-    assert_eq!(plain.len(), cells.len());
-    let claimed = [cells[5], cells[40]];
-    for threads in [1, 2] {
-        let claims = Claims::external(&grid);
-        for &c in &claimed {
-            claims.claim(c);
-        }
-        let got = pool(threads)
-            .install(|| integrate_cells_with(&grid, &run, Mode::FastPss, &cells, Some(&claims)));
-        for o in &got {
-            assert!(
-                !claimed.contains(&o.cell),
-                "claimed cell {} integrated",
-                o.cell
-            );
-            let want = plain.iter().find(|p| p.cell == o.cell).unwrap();
-            assert_eq!(o.visited, want.visited);
-            assert_eq!(
-                (o.class, o.status, o.steps),
-                (want.class, want.status, want.steps)
-            );
-            assert_eq!(o.sali.to_bits(), want.sali.to_bits());
-        }
-        // Outcomes keep the lease's order.
-        let order: Vec<usize> = got
-            .iter()
-            .map(|o| cells.iter().position(|&c| c == o.cell).unwrap())
-            .collect();
-        assert!(order.windows(2).all(|w| w[0] < w[1]));
-        // One thread is deterministic: some cells were crossed by an earlier orbit of the same
-        // lease and left out.
-        if threads == 1 {
-            assert!(
-                got.len() < cells.len() - claimed.len(),
-                "{} of {}",
-                got.len(),
-                cells.len()
-            );
+    let mut dop = tm("sbab2c", 0.5, 2e3);
+    dop.run = MethodRun {
+        method: Method::Dop853,
+        delta: Some(1e-8),
+        protocol: Protocol::Restart,
+    };
+    // Tangent-map leases run in lane batches, adaptive ones one orbit per thread: both
+    // through the same feed.
+    for run in [tm("sbab2c", 0.5, 2e3), dop] {
+        let cells: Vec<u32> = grid.canonical()[..64].to_vec();
+        let plain =
+            pool(2).install(|| salient_grid::integrate_cells(&grid, &run, Mode::FastPss, &cells));
+        assert_eq!(plain.len(), cells.len());
+        let claimed = [cells[5], cells[40]];
+        for threads in [1, 2] {
+            let claims = Claims::external(&grid);
+            for &c in &claimed {
+                claims.claim(c);
+            }
+            let got = pool(threads).install(|| {
+                integrate_cells_with(&grid, &run, Mode::FastPss, &cells, Some(&claims))
+            });
+            for o in &got {
+                assert!(
+                    !claimed.contains(&o.cell),
+                    "{:?}: claimed cell {} integrated",
+                    run.run.method,
+                    o.cell
+                );
+                let want = plain.iter().find(|p| p.cell == o.cell).unwrap();
+                assert_eq!(o.visited, want.visited);
+                assert_eq!(
+                    (o.class, o.status, o.steps),
+                    (want.class, want.status, want.steps)
+                );
+                assert_eq!(o.sali.to_bits(), want.sali.to_bits());
+            }
+            // Outcomes keep the lease's order.
+            let order: Vec<usize> = got
+                .iter()
+                .map(|o| cells.iter().position(|&c| c == o.cell).unwrap())
+                .collect();
+            assert!(order.windows(2).all(|w| w[0] < w[1]));
+            // One thread is deterministic: some cells were crossed by an earlier orbit of the same
+            // lease and left out.
+            if threads == 1 {
+                assert!(
+                    got.len() < cells.len() - claimed.len(),
+                    "{} of {}",
+                    got.len(),
+                    cells.len()
+                );
+            }
         }
     }
 }
