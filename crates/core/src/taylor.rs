@@ -282,35 +282,29 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
         self.t_prev.to_f64()
     }
 
-    /// The Jorba–Zou step for the current jet (absolute error control unless ‖x_0‖∞ > 1).
-    fn natural_step(&self) -> f64 {
+    /// The Jorba–Zou step for the current jet (absolute error control unless ‖x_0‖∞ > 1), or
+    /// infinity when it surely exceeds `reach` (> 0). That is decided without the roots:
+    /// ‖x_[j]‖ ≤ ½ (c/reach)^j for j = p − 1, p puts ρ_j c at least 2^{1/j} ≥ 1.4 % above
+    /// `reach`, far beyond the rounding of either test. In the restart protocol at small τ
+    /// nearly every step is cut to τ and needs no more.
+    fn natural_step(&self, reach: f64) -> f64 {
         let p = self.order;
         let scale = self.jet.norm_inf(0).max(1.0);
-        let rho = |j: usize| {
-            let n = self.jet.norm_inf(j) / scale;
-            if n > 0.0 {
-                n.powf(-1.0 / j as f64)
+        let norms = [p - 1, p].map(|j| self.jet.norm_inf(j) / scale);
+        let x = self.step_factors.0 * self.step_factors.1 / reach;
+        let surely_reaches = x.is_finite()
+            && (0..2).all(|i| norms[i].is_finite() && norms[i] <= 0.5 * x.powi((p - 1 + i) as i32));
+        if surely_reaches {
+            return f64::INFINITY;
+        }
+        let rho = |i: usize| {
+            if norms[i] > 0.0 {
+                norms[i].powf(-1.0 / (p - 1 + i) as f64)
             } else {
                 f64::INFINITY
             }
         };
-        let r = rho(p - 1).min(rho(p));
-        r * self.step_factors.0 * self.step_factors.1
-    }
-
-    /// Whether the natural step surely exceeds `reach` (> 0), decided without the roots of
-    /// [`Self::natural_step`]: ‖x_[j]‖ ≤ ½ (c/reach)^j for j = p − 1, p puts ρ_j c at least
-    /// 2^{1/j} ≥ 1.4 % above `reach`, far beyond the rounding of either test. In the restart
-    /// protocol at small τ nearly every step is cut to τ and this is all it needs.
-    fn natural_step_exceeds(&self, reach: f64) -> bool {
-        let p = self.order;
-        let scale = self.jet.norm_inf(0).max(1.0);
-        let x = self.step_factors.0 * self.step_factors.1 / reach;
-        x.is_finite()
-            && [p - 1, p].into_iter().all(|j| {
-                let n = self.jet.norm_inf(j) / scale;
-                n.is_finite() && n <= 0.5 * x.powi(j as i32)
-            })
+        rho(0).min(rho(1)) * self.step_factors.0 * self.step_factors.1
     }
 
     /// One step ending at or before `t_end`, exactly at it when within reach.
@@ -325,11 +319,7 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
         // Infinite when the series terminates (a polynomial solution): then any step is exact.
         // The reach in f64, as the test below sees it (`remaining` may differ in extended
         // precision).
-        let h_nat = if self.natural_step_exceeds(t_end - self.t()) {
-            f64::INFINITY
-        } else {
-            self.natural_step()
-        };
+        let h_nat = self.natural_step(t_end - self.t());
         if h_nat.is_nan() {
             return Err(StepFailure::NonFinite { t: self.t() });
         }
