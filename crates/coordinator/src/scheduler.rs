@@ -72,8 +72,8 @@ struct Run {
     /// report must still change nothing).
     stored: Vec<bool>,
     checkpoints: usize,
-    /// Whether a worker thread runs one orbit at a time (adaptive methods) rather than a
-    /// batch of lanes (tangent-map methods); fast-PSS leases are sized by it.
+    /// Whether a worker thread runs one orbit at a time (DOP853, f64 Taylor) rather than a
+    /// batch of lanes (tangent-map methods, `taylor-dd`); fast-PSS leases are sized by it.
     one_orbit_per_thread: bool,
     tiles: Vec<Tile>,
     cpu_ns: u64,
@@ -135,9 +135,9 @@ impl Run {
             ledger: Ledger::new(&grid, spec.grid.mode),
             stored: vec![false; grid.cells()],
             checkpoints: cell_run.checkpoint_steps().len(),
-            one_orbit_per_thread: !matches!(
+            one_orbit_per_thread: matches!(
                 cell_run.run.method,
-                salient_core::Method::TangentMap(_)
+                salient_core::Method::Dop853 | salient_core::Method::Taylor
             ),
             tiles: (0..grid.tile_count()).map(|_| Tile::default()).collect(),
             grid,

@@ -1,4 +1,4 @@
-//! The one-orbit driver for adaptive integrators (DOP853; Taylor to come), in the two protocols:
+//! The one-orbit driver for adaptive integrators (DOP853, Taylor), in the two protocols:
 //!
 //! - `restart` (the seed paper's): integrate exactly to every multiple of τ, compute the
 //!   indicators there, renormalise the deviation vectors to unit length and carry the predicted
@@ -20,7 +20,10 @@ use crate::orbit::{
 use crate::real::dot;
 use crate::section::{bracketed_root, Crossing};
 use crate::tangent::Phase;
-use crate::taylor::{Scalar, Taylor, TaylorSeries};
+use crate::taylor::{Lanewise, Scalar, Taylor, TaylorSeries};
+use core::future::Future;
+use core::pin::pin;
+use core::task::{Context, Poll, Waker};
 
 /// How an adaptive method meets the renormalisation times.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -50,8 +53,10 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     /// Scales every deviation vector to unit length (in the integrator's own precision) and
     /// returns ln of the factor removed from the first one.
     fn renormalise(&mut self) -> f64;
-    /// One accepted step ending at or before `t_end` (exactly at it when within reach).
-    fn step(&mut self, t_end: f64) -> Result<(), StepFailure>;
+    /// One accepted step ending at or before `t_end` (exactly at it when within reach). A
+    /// scalar integrator steps when called and its future is ready at once; a lane of a SIMD
+    /// batch ([`crate::lanes`]) waits until the batch steps.
+    fn step(&mut self, t_end: f64) -> impl Future<Output = Result<(), StepFailure>>;
     /// Makes the last step's interpolant available to [`Self::interpolate`] and
     /// [`Self::energy_error`]; it is built only when asked for (DOP853's costs 3 evaluations).
     fn prepare_dense(&mut self) {}
@@ -67,7 +72,7 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
 }
 
 /// |h − h0| relative to |h0| (absolute when h0 is ~0).
-fn relative(dh: f64, h0: f64) -> f64 {
+pub(crate) fn relative(dh: f64, h0: f64) -> f64 {
     dh.abs() / if h0.abs() > 1e-300 { h0.abs() } else { 1.0 }
 }
 
@@ -111,10 +116,10 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
         self.inner.state_changed();
         ln
     }
-    fn step(&mut self, t_end: f64) -> Result<(), StepFailure> {
+    fn step(&mut self, t_end: f64) -> impl Future<Output = Result<(), StepFailure>> {
         self.t_prev = self.inner.t;
         self.dense_ready = false;
-        self.inner.step(t_end, None)
+        core::future::ready(self.inner.step(t_end, None))
     }
     fn prepare_dense(&mut self) {
         if !self.dense_ready {
@@ -168,7 +173,7 @@ pub struct TaylorOrbit<'h, H, T, const N: usize, const K: usize> {
     h0: T,
 }
 
-impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize>
+impl<'h, H: TaylorSeries<N>, T: Scalar + Lanewise<Lane = T>, const N: usize, const K: usize>
     TaylorOrbit<'h, H, T, N, K>
 {
     pub fn new(ham: &'h H, inner: Taylor<'h, H, T, N, K>) -> Self {
@@ -177,8 +182,8 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize>
     }
 }
 
-impl<H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
-    for TaylorOrbit<'_, H, T, N, K>
+impl<H: TaylorSeries<N>, T: Scalar + Lanewise<Lane = T>, const N: usize, const K: usize>
+    AdaptiveIntegrator<N, K> for TaylorOrbit<'_, H, T, N, K>
 {
     fn t(&self) -> f64 {
         self.inner.t()
@@ -189,8 +194,8 @@ impl<H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> AdaptiveInte
     fn renormalise(&mut self) -> f64 {
         unit_vectors(&mut self.inner.y)
     }
-    fn step(&mut self, t_end: f64) -> Result<(), StepFailure> {
-        self.inner.step(t_end)
+    fn step(&mut self, t_end: f64) -> impl Future<Output = Result<(), StepFailure>> {
+        core::future::ready(self.inner.step(t_end))
     }
     fn interpolate(&self, t: f64) -> Phase<f64, N, K> {
         to_f64_phase(&self.inner.interpolate(t))
@@ -413,7 +418,7 @@ where
     H: Hamiltonian<N>,
     I: AdaptiveIntegrator<N, K>,
 {
-    integrate(
+    now(integrate(
         ham,
         integ,
         protocol,
@@ -421,7 +426,7 @@ where
         requests,
         false,
         &mut Unwatched,
-    )
+    ))
     .expect("an unwatched orbit is never abandoned")
 }
 
@@ -438,12 +443,24 @@ where
     H: Hamiltonian<N>,
     I: AdaptiveIntegrator<N, K>,
 {
-    integrate(ham, integ, protocol, config, requests, false, watch)
+    now(integrate(
+        ham, integ, protocol, config, requests, false, watch,
+    ))
+}
+
+/// The output of a future that never waits (a driver over a scalar integrator).
+fn now<F: Future>(f: F) -> F::Output {
+    match pin!(f).poll(&mut Context::from_waker(Waker::noop())) {
+        Poll::Ready(out) => out,
+        Poll::Pending => unreachable!("a scalar integrator's step is ready at once"),
+    }
 }
 
 /// [`integrate_adaptive_watched`]; with `every_tau`, the free protocol computes SALI at every
-/// multiple of τ (the reference its stop window is tested against).
-fn integrate<H, I, const N: usize, const K: usize>(
+/// multiple of τ (the reference its stop window is tested against). A future, so that orbits in
+/// the lanes of a SIMD batch ([`crate::lanes`]) each run this one driver and wait at their
+/// steps for the batch; over a scalar integrator it never waits.
+pub(crate) async fn integrate<H, I, const N: usize, const K: usize>(
     ham: &H,
     integ: &mut I,
     protocol: Protocol,
@@ -477,6 +494,8 @@ where
     let mut t_end_state = 0.0;
     let mut end_state = y0;
     let mut q_prev = y0.q;
+    // q1 at the last step's end (renormalising leaves q alone).
+    let mut q1 = y0.q[0];
     let mut sali_prev = sali((&y0.dq[0], &y0.dp[0]), (&y0.dq[1], &y0.dp[1]));
 
     'outer: while n < n_final {
@@ -484,19 +503,21 @@ where
             Protocol::Restart => (n + 1) as f64 * tau,
             Protocol::Free => n_final as f64 * tau,
         };
-        let q1_before = integ.state().q[0];
-        if let Err(e) = integ.step(target) {
+        if let Err(e) = integ.step(target).await {
             status = match e {
                 StepFailure::StepTooSmall { .. } => Status::StepLimit,
                 StepFailure::NonFinite { .. } => Status::NonFinite,
             };
             break;
         }
-        if let Some(s) = books.at_step_end(&integ.state(), || integ.energy_error(None)) {
+        // The state after the step, read once (a lane of a SIMD batch gathers it).
+        let y = integ.state();
+        if let Some(s) = books.at_step_end(&y, || integ.energy_error(None)) {
             status = s;
             break;
         }
-        if requests.crossings && q1_before < 0.0 && integ.state().q[0] >= 0.0 {
+        let q1_before = core::mem::replace(&mut q1, y.q[0]);
+        if requests.crossings && q1_before < 0.0 && y.q[0] >= 0.0 {
             let c = locate_dense(integ);
             watch.crossing(&c);
             out.crossings.push(c);
@@ -509,14 +530,12 @@ where
                     // early, but only when a squared norm leaves the band, so short intervals
                     // (the paper's τ ≤ 0.5) keep the protocol bit for bit; the step control
                     // sees the vectors' scale, so where it triggers the steps change.
-                    let y = integ.state();
                     if (0..K).any(|k| !in_band(norm2(&y.dq[k], &y.dp[k]))) {
                         books.ln_growth += integ.renormalise();
                     }
                     continue;
                 }
                 n += 1;
-                let y = integ.state();
                 t_end_state = n as f64 * tau;
                 end_state = y;
                 if books.at_tau(n, &y, || integ.energy_error(None), &mut out) {
@@ -528,7 +547,7 @@ where
                 // The multiples of τ inside this step, through the dense output; only those
                 // that matter: samples, t_final, and those where the early stop could fire.
                 let (t0, t1) = (integ.t_prev(), integ.t());
-                let y1 = integ.state();
+                let y1 = y;
                 let sali1 = sali((&y1.dq[0], &y1.dp[0]), (&y1.dq[1], &y1.dp[1]));
                 // The last multiple of τ in the step, by the same test as the sampling loop had.
                 let mut n_last = ((t1 / tau) as u64).clamp(n, n_final);
@@ -672,7 +691,7 @@ mod tests {
         let s = |y: &Phase<f64, 2, 2>| sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1]));
         while s(&integ.state()) > 1e-11 {
             let y0 = integ.state();
-            integ.step(600.0).unwrap();
+            now(integ.step(600.0)).unwrap();
             integ.prepare_dense();
             let y1 = integ.state();
             let (t0, t1) = (integ.t_prev(), integ.t());
@@ -716,7 +735,7 @@ mod tests {
         every_tau: bool,
     ) -> OrbitResult<2> {
         let (ham, free) = (&HenonHeiles, Protocol::Free);
-        integrate(
+        now(integrate(
             ham,
             &mut integ,
             free,
@@ -724,7 +743,7 @@ mod tests {
             requests,
             every_tau,
             &mut Unwatched,
-        )
+        ))
         .unwrap()
     }
 

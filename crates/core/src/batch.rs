@@ -134,7 +134,7 @@ pub fn poll_interval(tau: f64) -> u64 {
 /// [`poll_interval`]: a feed may answer [`Feed::Wait`] for a moment (the fast-PSS engine does
 /// while the outcomes of the orbits that just ended are on their way to the ledger), and an
 /// idle lane steps at the full cost.
-const IDLE_POLL: u64 = 8;
+pub(crate) const IDLE_POLL: u64 = 8;
 
 /// Integrates every initial condition of `ics` as [`integrate`](crate::orbit::integrate) would,
 /// `L` at a time in SIMD lanes, and hands each result to `sink` with its index as soon as it

@@ -8,16 +8,18 @@
 use crate::real::Real;
 use core::ops::{Add, AddAssign, Div, Mul, Neg, Sub, SubAssign};
 
-/// hi + lo, normalised so that hi = fl(hi + lo).
+/// hi + lo, normalised so that hi = fl(hi + lo). `B` is `f64` for one number or
+/// [`Lanes`](crate::real::Lanes) for several side by side in SIMD lanes, each lane computing
+/// exactly what the `f64` form computes (same operations, same order).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct DoubleDouble {
-    pub hi: f64,
-    pub lo: f64,
+pub struct DoubleDouble<B = f64> {
+    pub hi: B,
+    pub lo: B,
 }
 
 /// s + e = a + b exactly.
 #[inline(always)]
-fn two_sum(a: f64, b: f64) -> (f64, f64) {
+fn two_sum<B: Real>(a: B, b: B) -> (B, B) {
     let s = a + b;
     let bb = s - a;
     let e = (a - (s - bb)) + (b - bb);
@@ -26,16 +28,27 @@ fn two_sum(a: f64, b: f64) -> (f64, f64) {
 
 /// s + e = a + b exactly, given |a| ≥ |b|.
 #[inline(always)]
-fn fast_two_sum(a: f64, b: f64) -> (f64, f64) {
+fn fast_two_sum<B: Real>(a: B, b: B) -> (B, B) {
     let s = a + b;
     (s, b - (s - a))
 }
 
 /// p + e = a·b exactly.
 #[inline(always)]
-fn two_prod(a: f64, b: f64) -> (f64, f64) {
+fn two_prod<B: Real>(a: B, b: B) -> (B, B) {
     let p = a * b;
     (p, a.mul_add(b, -p))
+}
+
+impl<B: Real> DoubleDouble<B> {
+    /// The double-double `x` in every lane.
+    #[inline(always)]
+    pub fn splat_dd(x: DoubleDouble) -> Self {
+        DoubleDouble {
+            hi: B::splat(x.hi),
+            lo: B::splat(x.lo),
+        }
+    }
 }
 
 impl DoubleDouble {
@@ -73,7 +86,7 @@ impl DoubleDouble {
     }
 }
 
-impl Add for DoubleDouble {
+impl<B: Real> Add for DoubleDouble<B> {
     type Output = Self;
     #[inline(always)]
     fn add(self, b: Self) -> Self {
@@ -99,7 +112,7 @@ impl Div for DoubleDouble {
     }
 }
 
-impl Neg for DoubleDouble {
+impl<B: Real> Neg for DoubleDouble<B> {
     type Output = Self;
     #[inline(always)]
     fn neg(self) -> Self {
@@ -110,7 +123,7 @@ impl Neg for DoubleDouble {
     }
 }
 
-impl Sub for DoubleDouble {
+impl<B: Real> Sub for DoubleDouble<B> {
     type Output = Self;
     #[inline(always)]
     fn sub(self, b: Self) -> Self {
@@ -118,7 +131,7 @@ impl Sub for DoubleDouble {
     }
 }
 
-impl Mul for DoubleDouble {
+impl<B: Real> Mul for DoubleDouble<B> {
     type Output = Self;
     #[inline(always)]
     fn mul(self, b: Self) -> Self {
@@ -129,24 +142,27 @@ impl Mul for DoubleDouble {
     }
 }
 
-impl AddAssign for DoubleDouble {
+impl<B: Real> AddAssign for DoubleDouble<B> {
     #[inline(always)]
     fn add_assign(&mut self, b: Self) {
         *self = *self + b;
     }
 }
 
-impl SubAssign for DoubleDouble {
+impl<B: Real> SubAssign for DoubleDouble<B> {
     #[inline(always)]
     fn sub_assign(&mut self, b: Self) {
         *self = *self - b;
     }
 }
 
-impl Real for DoubleDouble {
+impl<B: Real> Real for DoubleDouble<B> {
     #[inline(always)]
     fn splat(x: f64) -> Self {
-        DoubleDouble::from_f64(x)
+        DoubleDouble {
+            hi: B::splat(x),
+            lo: B::splat(0.0),
+        }
     }
     #[inline(always)]
     fn mul_add(self, a: Self, b: Self) -> Self {
@@ -154,7 +170,7 @@ impl Real for DoubleDouble {
     }
     #[inline(always)]
     fn ratio(num: f64, den: f64) -> Self {
-        DoubleDouble::from_f64(num) / DoubleDouble::from_f64(den)
+        Self::splat_dd(DoubleDouble::from_f64(num) / DoubleDouble::from_f64(den))
     }
 }
 

@@ -15,6 +15,7 @@ pub mod dd;
 pub mod dop853;
 pub mod hamiltonian;
 pub mod indicators;
+pub mod lanes;
 pub mod method;
 pub mod orbit;
 pub mod precision;

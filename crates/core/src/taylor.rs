@@ -12,7 +12,7 @@
 use crate::dd::DoubleDouble;
 use crate::dop853::StepFailure;
 use crate::hamiltonian::{Hamiltonian, HenonHeiles};
-use crate::real::Real;
+use crate::real::{Lanes, Real};
 use crate::tangent::Phase;
 
 /// Highest order supported (δ = 1e-32 needs p = 38).
@@ -34,6 +34,103 @@ impl Scalar for DoubleDouble {
     #[inline(always)]
     fn to_f64(self) -> f64 {
         DoubleDouble::to_f64(self)
+    }
+}
+
+/// A number type holding [`Lanewise::LANES`] independent numbers of type [`Lanewise::Lane`]:
+/// one for `f64` and `DoubleDouble`, several for their SIMD forms. Step control is per lane;
+/// the recursion and the evaluation run on every lane at once.
+pub trait Lanewise: Real {
+    const LANES: usize;
+    type Lane: Scalar;
+    fn lane(self, i: usize) -> Self::Lane;
+    fn set_lane(&mut self, i: usize, x: Self::Lane);
+}
+
+impl Lanewise for f64 {
+    const LANES: usize = 1;
+    type Lane = f64;
+    #[inline(always)]
+    fn lane(self, _: usize) -> f64 {
+        self
+    }
+    #[inline(always)]
+    fn set_lane(&mut self, _: usize, x: f64) {
+        *self = x;
+    }
+}
+
+impl Lanewise for DoubleDouble {
+    const LANES: usize = 1;
+    type Lane = DoubleDouble;
+    #[inline(always)]
+    fn lane(self, _: usize) -> DoubleDouble {
+        self
+    }
+    #[inline(always)]
+    fn set_lane(&mut self, _: usize, x: DoubleDouble) {
+        *self = x;
+    }
+}
+
+impl<const L: usize> Lanewise for Lanes<L> {
+    const LANES: usize = L;
+    type Lane = f64;
+    #[inline(always)]
+    fn lane(self, i: usize) -> f64 {
+        self.0[i]
+    }
+    #[inline(always)]
+    fn set_lane(&mut self, i: usize, x: f64) {
+        self.0[i] = x;
+    }
+}
+
+impl<const L: usize> Lanewise for DoubleDouble<Lanes<L>> {
+    const LANES: usize = L;
+    type Lane = DoubleDouble;
+    #[inline(always)]
+    fn lane(self, i: usize) -> DoubleDouble {
+        DoubleDouble {
+            hi: self.hi.0[i],
+            lo: self.lo.0[i],
+        }
+    }
+    #[inline(always)]
+    fn set_lane(&mut self, i: usize, x: DoubleDouble) {
+        self.hi.0[i] = x.hi;
+        self.lo.0[i] = x.lo;
+    }
+}
+
+/// Lane `l` of a phase point.
+#[inline(always)]
+pub fn phase_lane<T: Lanewise, const N: usize, const K: usize>(
+    y: &Phase<T, N, K>,
+    l: usize,
+) -> Phase<T::Lane, N, K> {
+    Phase {
+        q: y.q.map(|x| x.lane(l)),
+        p: y.p.map(|x| x.lane(l)),
+        dq: y.dq.map(|v| v.map(|x| x.lane(l))),
+        dp: y.dp.map(|v| v.map(|x| x.lane(l))),
+    }
+}
+
+/// Sets lane `l` of a phase point.
+#[inline(always)]
+pub fn set_phase_lane<T: Lanewise, const N: usize, const K: usize>(
+    y: &mut Phase<T, N, K>,
+    l: usize,
+    x: &Phase<T::Lane, N, K>,
+) {
+    for i in 0..N {
+        y.q[i].set_lane(l, x.q[i]);
+        y.p[i].set_lane(l, x.p[i]);
+        for k in 0..K {
+            y.dq[k][i].set_lane(l, x.dq[k][i]);
+            y.dp[k][i].set_lane(l, x.dp[k][i]);
+        }
     }
 }
 
@@ -113,8 +210,15 @@ impl TaylorSeries<2> for HenonHeiles {
         // of dependent operations, and side by side they overlap.
         let (a, b) = (&q[0], &q[1]);
         let (mut s12, mut sd) = (a[0] * b[k], (a[0] - b[0]) * (a[k] + b[k]));
-        let mut s1: [T; K] = core::array::from_fn(|v| b[0] * u[v][0][k] + a[0] * u[v][1][k]);
-        let mut s2: [T; K] = core::array::from_fn(|v| a[0] * u[v][0][k] - b[0] * u[v][1][k]);
+        // Plain loops rather than `array::from_fn`: the compiler may outline an array builder,
+        // and a call in this loop costs a `vzeroupper` and stalls store forwarding (it was a
+        // fifth of the 8-lane AVX-512 step).
+        let mut s1 = [T::splat(0.0); K];
+        let mut s2 = [T::splat(0.0); K];
+        for v in 0..K {
+            s1[v] = b[0] * u[v][0][k] + a[0] * u[v][1][k];
+            s2[v] = a[0] * u[v][0][k] - b[0] * u[v][1][k];
+        }
         for j in 1..=k {
             s12 = a[j].mul_add(b[k - j], s12);
             sd = (a[j] - b[j]).mul_add(a[k - j] + b[k - j], sd);
@@ -125,13 +229,12 @@ impl TaylorSeries<2> for HenonHeiles {
             }
         }
         let two = T::splat(2.0);
-        (
-            [two.mul_add(s12, a[k]), b[k] + sd],
-            core::array::from_fn(|v| {
-                let (x, y) = (&u[v][0], &u[v][1]);
-                [two.mul_add(s1[v], x[k]), two.mul_add(s2[v], y[k])]
-            }),
-        )
+        let mut hv = [[T::splat(0.0); 2]; K];
+        for v in 0..K {
+            let (x, y) = (&u[v][0], &u[v][1]);
+            hv[v] = [two.mul_add(s1[v], x[k]), two.mul_add(s2[v], y[k])];
+        }
+        ([two.mul_add(s12, a[k]), b[k] + sd], hv)
     }
 }
 
@@ -148,7 +251,7 @@ pub struct Jet<T, const N: usize, const K: usize> {
     inverse: Series<T>,
 }
 
-impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
+impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
     pub fn zero() -> Self {
         let z = [[T::splat(0.0); P_MAX + 1]; N];
         Jet {
@@ -162,6 +265,7 @@ impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
     }
 
     /// Fills the coefficients of order 0..=p from the point `y`.
+    #[inline(always)]
     pub fn compute<H: TaylorSeries<N>>(&mut self, ham: &H, y: &Phase<T, N, K>, p: usize) {
         assert!(p <= P_MAX);
         self.order = p;
@@ -189,33 +293,21 @@ impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
         }
     }
 
-    /// ‖x_[j]‖∞ over every component.
-    pub fn norm_inf(&self, j: usize) -> f64 {
-        let mut m = 0.0f64;
-        for i in 0..N {
-            m = m
-                .max(self.q[i][j].to_f64().abs())
-                .max(self.p[i][j].to_f64().abs());
-            for k in 0..K {
-                m = m
-                    .max(self.dq[k][i][j].to_f64().abs())
-                    .max(self.dp[k][i][j].to_f64().abs());
-            }
-        }
-        m
-    }
-
     /// Σ_k x_[k] s^k by Horner's rule, every component's chain advanced one order at a time:
     /// the chains are independent, and interleaved they overlap in the pipeline (a
     /// double-double multiply-add is a long chain of dependent operations).
+    #[inline(always)]
     pub fn eval(&self, s: T) -> Phase<T, N, K> {
         let p = self.order;
-        let mut y = Phase {
-            q: core::array::from_fn(|i| self.q[i][p]),
-            p: core::array::from_fn(|i| self.p[i][p]),
-            dq: core::array::from_fn(|v| core::array::from_fn(|i| self.dq[v][i][p])),
-            dp: core::array::from_fn(|v| core::array::from_fn(|i| self.dp[v][i][p])),
-        };
+        let mut y = Phase::zero();
+        for i in 0..N {
+            y.q[i] = self.q[i][p];
+            y.p[i] = self.p[i][p];
+            for v in 0..K {
+                y.dq[v][i] = self.dq[v][i][p];
+                y.dp[v][i] = self.dp[v][i][p];
+            }
+        }
         for k in (0..p).rev() {
             for i in 0..N {
                 y.q[i] = y.q[i].mul_add(s, self.q[i][k]);
@@ -230,6 +322,187 @@ impl<T: Scalar, const N: usize, const K: usize> Jet<T, N, K> {
     }
 }
 
+impl<T: Lanewise, const N: usize, const K: usize> Jet<T, N, K> {
+    /// ‖x_[j]‖∞ over every component of lane `l`.
+    pub fn norm_inf(&self, j: usize, l: usize) -> f64 {
+        let at = |x: &Series<T>| x[j].lane(l).to_f64().abs();
+        let mut m = 0.0f64;
+        for i in 0..N {
+            m = m.max(at(&self.q[i])).max(at(&self.p[i]));
+            for k in 0..K {
+                m = m.max(at(&self.dq[k][i])).max(at(&self.dp[k][i]));
+            }
+        }
+        m
+    }
+
+    /// ‖x_[j]‖∞ of lane `l` for j = 0, p − 1 and p: what the step control reads.
+    fn step_norms(&self, l: usize) -> [f64; 3] {
+        let p = self.order;
+        [0, p - 1, p].map(|j| self.norm_inf(j, l))
+    }
+
+    /// [`Self::step_norms`] of every lane in one pass (each lane's maxima taken in
+    /// [`Self::norm_inf`]'s order).
+    #[inline(always)]
+    fn step_norms_lanes<const L: usize>(&self) -> [[f64; 3]; L] {
+        let p = self.order;
+        let mut m = [[0.0f64; L]; 3];
+        for (slot, j) in [0, p - 1, p].into_iter().enumerate() {
+            let m = &mut m[slot];
+            for i in 0..N {
+                fold_abs_max(m, self.q[i][j]);
+                fold_abs_max(m, self.p[i][j]);
+                for k in 0..K {
+                    fold_abs_max(m, self.dq[k][i][j]);
+                    fold_abs_max(m, self.dp[k][i][j]);
+                }
+            }
+        }
+        core::array::from_fn(|l| [m[0][l], m[1][l], m[2][l]])
+    }
+
+    /// Lane `l`'s polynomial at `s`, by [`Jet::eval`]'s operations on that lane alone.
+    pub fn eval_lane(&self, l: usize, s: T::Lane) -> Phase<T::Lane, N, K> {
+        let p = self.order;
+        let c = |x: &Series<T>, k: usize| x[k].lane(l);
+        let mut y = Phase {
+            q: core::array::from_fn(|i| c(&self.q[i], p)),
+            p: core::array::from_fn(|i| c(&self.p[i], p)),
+            dq: core::array::from_fn(|v| core::array::from_fn(|i| c(&self.dq[v][i], p))),
+            dp: core::array::from_fn(|v| core::array::from_fn(|i| c(&self.dp[v][i], p))),
+        };
+        for k in (0..p).rev() {
+            for i in 0..N {
+                y.q[i] = y.q[i].mul_add(s, c(&self.q[i], k));
+                y.p[i] = y.p[i].mul_add(s, c(&self.p[i], k));
+                for v in 0..K {
+                    y.dq[v][i] = y.dq[v][i].mul_add(s, c(&self.dq[v][i], k));
+                    y.dp[v][i] = y.dp[v][i].mul_add(s, c(&self.dp[v][i], k));
+                }
+            }
+        }
+        y
+    }
+}
+
+/// m_l ← max(m_l, |x_l|) in every lane.
+#[inline(always)]
+fn fold_abs_max<T: Lanewise, const L: usize>(m: &mut [f64; L], x: T) {
+    for l in 0..L {
+        m[l] = m[l].max(x.lane(l).to_f64().abs());
+    }
+}
+
+/// Whether every component of lane `l` is finite.
+fn lane_finite<T: Lanewise, const N: usize, const K: usize>(y: &Phase<T, N, K>, l: usize) -> bool {
+    let finite = |v: &[T; N]| v.iter().all(|x| x.lane(l).to_f64().is_finite());
+    finite(&y.q) && finite(&y.p) && y.dq.iter().chain(&y.dp).all(finite)
+}
+
+/// Bounds on the norms under which the natural step surely exceeds any reach up to `reach`.
+#[derive(Clone, Copy, Debug)]
+struct ReachTest {
+    reach: f64,
+    bound: [f64; 2],
+}
+
+impl ReachTest {
+    /// Passes nothing (negative bounds) and is recomputed at the next step.
+    const NONE: ReachTest = ReachTest {
+        reach: f64::NEG_INFINITY,
+        bound: [-1.0; 2],
+    };
+}
+
+/// The Jorba–Zou order and its step factors.
+#[derive(Clone, Copy, Debug)]
+struct StepRule {
+    order: usize,
+    /// The factors e^{−2} and e^{−0.7/(p−1)} of the natural step, for this order (applied one
+    /// after the other, as the rule is written: their product would round differently).
+    factors: (f64, f64),
+}
+
+impl StepRule {
+    fn new(delta: f64) -> Self {
+        let order = order_for(delta);
+        StepRule {
+            order,
+            factors: ((-2.0f64).exp(), (-0.7 / (order as f64 - 1.0)).exp()),
+        }
+    }
+
+    /// The Jorba–Zou step for a jet with the norms `n` of [`Jet::step_norms`] (absolute error
+    /// control unless ‖x_0‖∞ > 1), or infinity when it surely exceeds `reach` (> 0). That is
+    /// decided without the roots: ‖x_[j]‖ ≤ ½ (c/r)^j for j = p − 1, p and some r ≥ `reach`
+    /// puts ρ_j c at least 2^{1/j} ≥ 1.4 % above `reach`, far beyond the rounding of either
+    /// test, so the step the roots would give lands on t_end just the same: the test changes
+    /// the cost, never the step. In the restart protocol at small τ nearly every step is cut to
+    /// τ and needs no more. The bounds for r are kept in `test` and reused while the reach
+    /// stays below it.
+    fn natural_step(&self, n: [f64; 3], reach: f64, test: &mut ReachTest) -> f64 {
+        let p = self.order;
+        let scale = n[0].max(1.0);
+        let norms = [n[1] / scale, n[2] / scale];
+        if !(reach > 0.0 && reach <= test.reach) {
+            // Slack above this reach, so that the restart protocol's reaches (τ up to the
+            // rounding of the multiples of τ) share one computation.
+            let r = reach * (1.0 + 1e-6);
+            let x = self.factors.0 * self.factors.1 / r;
+            *test = if x.is_finite() && r > 0.0 {
+                ReachTest {
+                    reach: r,
+                    bound: [0, 1].map(|i| 0.5 * x.powi((p - 1 + i) as i32)),
+                }
+            } else {
+                ReachTest::NONE
+            };
+        }
+        let surely_reaches = (0..2).all(|i| norms[i].is_finite() && norms[i] <= test.bound[i]);
+        if surely_reaches {
+            return f64::INFINITY;
+        }
+        let rho = |i: usize| {
+            if norms[i] > 0.0 {
+                norms[i].powf(-1.0 / (p - 1 + i) as f64)
+            } else {
+                f64::INFINITY
+            }
+        };
+        rho(0).min(rho(1)) * self.factors.0 * self.factors.1
+    }
+
+    /// The step of lane `l`, at time `t`, toward `t_end` (the jet computed): its size and
+    /// whether it lands on `t_end`.
+    fn plan<S: Scalar>(
+        &self,
+        norms: [f64; 3],
+        test: &mut ReachTest,
+        t: S,
+        t_end: f64,
+    ) -> Result<(S, bool), StepFailure> {
+        let t64 = t.to_f64();
+        let remaining = S::splat(t_end) - t;
+        // Infinite when the series terminates (a polynomial solution): then any step is exact.
+        // The reach in f64, as the test below sees it (`remaining` may differ in extended
+        // precision).
+        let h_nat = self.natural_step(norms, t_end - t64, test);
+        if h_nat.is_nan() {
+            return Err(StepFailure::NonFinite { t: t64 });
+        }
+        let (h, last) = if t64 + h_nat >= t_end {
+            (remaining, true)
+        } else {
+            (S::splat(h_nat), false)
+        };
+        if h.to_f64() <= t64.abs() * f64::EPSILON * 0.1 && !last {
+            return Err(StepFailure::StepTooSmall { t: t64 });
+        }
+        Ok((h, last))
+    }
+}
+
 /// Jorba–Zou order for a tolerance: ⌊1.5 − 1.16 log10 δ⌋, at least 2.
 pub fn order_for(delta: f64) -> usize {
     ((1.5 - 1.16 * delta.log10()).floor() as usize).clamp(2, P_MAX)
@@ -240,11 +513,8 @@ pub fn order_for(delta: f64) -> usize {
 pub struct Taylor<'h, H, T, const N: usize, const K: usize> {
     ham: &'h H,
     pub delta: f64,
-    order: usize,
-    /// The Jorba–Zou factors e^{−2} and e^{−0.7/(p−1)} of the natural step, for this order
-    /// (applied one after the other, as the rule is written: their product would round
-    /// differently).
-    step_factors: (f64, f64),
+    rule: StepRule,
+    test: ReachTest,
     /// Time, in `T` so that steps landing on t_end are exact in extended precision too.
     t: T,
     t_prev: T,
@@ -253,14 +523,15 @@ pub struct Taylor<'h, H, T, const N: usize, const K: usize> {
     pub steps: u64,
 }
 
-impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'h, H, T, N, K> {
+impl<'h, H: TaylorSeries<N>, T: Scalar + Lanewise<Lane = T>, const N: usize, const K: usize>
+    Taylor<'h, H, T, N, K>
+{
     pub fn new(ham: &'h H, delta: f64, t0: f64, y: Phase<T, N, K>) -> Self {
-        let order = order_for(delta);
         Taylor {
             ham,
             delta,
-            order,
-            step_factors: ((-2.0f64).exp(), (-0.7 / (order as f64 - 1.0)).exp()),
+            rule: StepRule::new(delta),
+            test: ReachTest::NONE,
             t: T::splat(t0),
             t_prev: T::splat(t0),
             y,
@@ -275,62 +546,21 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
 
     /// The Jorba–Zou order in use.
     pub fn order(&self) -> usize {
-        self.order
+        self.rule.order
     }
 
     pub fn t_prev(&self) -> f64 {
         self.t_prev.to_f64()
     }
 
-    /// The Jorba–Zou step for the current jet (absolute error control unless ‖x_0‖∞ > 1), or
-    /// infinity when it surely exceeds `reach` (> 0). That is decided without the roots:
-    /// ‖x_[j]‖ ≤ ½ (c/reach)^j for j = p − 1, p puts ρ_j c at least 2^{1/j} ≥ 1.4 % above
-    /// `reach`, far beyond the rounding of either test. In the restart protocol at small τ
-    /// nearly every step is cut to τ and needs no more.
-    fn natural_step(&self, reach: f64) -> f64 {
-        let p = self.order;
-        let scale = self.jet.norm_inf(0).max(1.0);
-        let norms = [p - 1, p].map(|j| self.jet.norm_inf(j) / scale);
-        let x = self.step_factors.0 * self.step_factors.1 / reach;
-        let surely_reaches = x.is_finite()
-            && (0..2).all(|i| norms[i].is_finite() && norms[i] <= 0.5 * x.powi((p - 1 + i) as i32));
-        if surely_reaches {
-            return f64::INFINITY;
-        }
-        let rho = |i: usize| {
-            if norms[i] > 0.0 {
-                norms[i].powf(-1.0 / (p - 1 + i) as f64)
-            } else {
-                f64::INFINITY
-            }
-        };
-        rho(0).min(rho(1)) * self.step_factors.0 * self.step_factors.1
-    }
-
     /// One step ending at or before `t_end`, exactly at it when within reach.
     pub fn step(&mut self, t_end: f64) -> Result<(), StepFailure> {
-        let finite = |v: &[T; N]| v.iter().all(|x| x.to_f64().is_finite());
-        let y = &self.y;
-        if !(finite(&y.q) && finite(&y.p) && y.dq.iter().chain(&y.dp).all(finite)) {
+        if !lane_finite(&self.y, 0) {
             return Err(StepFailure::NonFinite { t: self.t() });
         }
-        self.jet.compute(self.ham, &self.y, self.order);
-        let remaining = T::splat(t_end) - self.t;
-        // Infinite when the series terminates (a polynomial solution): then any step is exact.
-        // The reach in f64, as the test below sees it (`remaining` may differ in extended
-        // precision).
-        let h_nat = self.natural_step(t_end - self.t());
-        if h_nat.is_nan() {
-            return Err(StepFailure::NonFinite { t: self.t() });
-        }
-        let (h, last) = if self.t() + h_nat >= t_end {
-            (remaining, true)
-        } else {
-            (T::splat(h_nat), false)
-        };
-        if h.to_f64() <= self.t().abs() * f64::EPSILON * 0.1 && !last {
-            return Err(StepFailure::StepTooSmall { t: self.t() });
-        }
+        self.jet.compute(self.ham, &self.y, self.rule.order);
+        let norms = self.jet.step_norms(0);
+        let (h, last) = self.rule.plan(norms, &mut self.test, self.t, t_end)?;
         self.y = self.jet.eval(h);
         self.t_prev = self.t;
         self.t = if last { T::splat(t_end) } else { self.t + h };
@@ -340,7 +570,133 @@ impl<'h, H: TaylorSeries<N>, T: Scalar, const N: usize, const K: usize> Taylor<'
 
     /// The state at time t within the last step, from its Taylor polynomial.
     pub fn interpolate(&self, t: f64) -> Phase<T, N, K> {
-        self.jet.eval(T::splat(t) - self.t_prev)
+        self.jet.eval_lane(0, T::splat(t) - self.t_prev)
+    }
+}
+
+/// `L` Taylor integrations side by side, one per lane of `T` (`T::LANES == L`): the
+/// recursion and the evaluation run on all lanes at once, the step control lane by lane with
+/// [`Taylor`]'s own functions, so each lane computes exactly what [`Taylor`] computes for its
+/// orbit alone. A lane steps only when asked; the others keep their state.
+pub struct TaylorLanes<'h, H, T: Lanewise, const N: usize, const K: usize, const L: usize> {
+    ham: &'h H,
+    rule: StepRule,
+    tests: [ReachTest; L],
+    y: Phase<T, N, K>,
+    t: [T::Lane; L],
+    t_prev: [T::Lane; L],
+    steps: [u64; L],
+    jet: Box<Jet<T, N, K>>,
+}
+
+impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: usize>
+    TaylorLanes<'h, H, T, N, K, L>
+{
+    pub fn new(ham: &'h H, delta: f64) -> Self {
+        assert_eq!(T::LANES, L, "one lane of T per integration");
+        let zero = T::Lane::splat(0.0);
+        TaylorLanes {
+            ham,
+            rule: StepRule::new(delta),
+            tests: [ReachTest::NONE; L],
+            y: Phase::zero(),
+            t: [zero; L],
+            t_prev: [zero; L],
+            steps: [0; L],
+            jet: Box::new(Jet::zero()),
+        }
+    }
+
+    /// Starts lane `l` afresh from `y` at time `t0`.
+    pub fn start(&mut self, l: usize, t0: f64, y: &Phase<T::Lane, N, K>) {
+        set_phase_lane(&mut self.y, l, y);
+        self.t[l] = T::Lane::splat(t0);
+        self.t_prev[l] = self.t[l];
+        self.steps[l] = 0;
+    }
+
+    /// The state of lane `l`.
+    pub fn state(&self, l: usize) -> Phase<T::Lane, N, K> {
+        phase_lane(&self.y, l)
+    }
+
+    /// Replaces the state of lane `l` at its current time.
+    pub fn set_state(&mut self, l: usize, y: &Phase<T::Lane, N, K>) {
+        set_phase_lane(&mut self.y, l, y);
+    }
+
+    pub fn t(&self, l: usize) -> f64 {
+        self.t[l].to_f64()
+    }
+
+    pub fn t_prev(&self, l: usize) -> f64 {
+        self.t_prev[l].to_f64()
+    }
+
+    pub fn steps(&self, l: usize) -> u64 {
+        self.steps[l]
+    }
+
+    /// One step of every lane `l` with `t_end[l]` set, as [`Taylor::step`] takes it; the
+    /// outcome of each such lane (`None` for the others). Inlined, so that a caller compiled
+    /// for a wider instruction set runs the recursion in it.
+    #[inline(always)]
+    pub fn step(&mut self, t_end: &[Option<f64>; L]) -> [Option<Result<(), StepFailure>>; L] {
+        let mut out = [None; L];
+        let mut go = [false; L];
+        for l in 0..L {
+            if t_end[l].is_some() {
+                if lane_finite(&self.y, l) {
+                    go[l] = true;
+                } else {
+                    out[l] = Some(Err(StepFailure::NonFinite { t: self.t(l) }));
+                }
+            }
+        }
+        if !go.contains(&true) {
+            return out;
+        }
+        self.jet.compute(self.ham, &self.y, self.rule.order);
+        let norms = self.jet.step_norms_lanes::<L>();
+        let mut h = T::splat(0.0);
+        let mut last = [false; L];
+        for l in 0..L {
+            if !go[l] {
+                continue;
+            }
+            let t_end = t_end[l].expect("asked");
+            match self
+                .rule
+                .plan(norms[l], &mut self.tests[l], self.t[l], t_end)
+            {
+                Ok((hl, landed)) => {
+                    h.set_lane(l, hl);
+                    last[l] = landed;
+                }
+                Err(e) => {
+                    out[l] = Some(Err(e));
+                    go[l] = false;
+                }
+            }
+        }
+        let y = self.jet.eval(h);
+        for l in (0..L).filter(|&l| go[l]) {
+            set_phase_lane(&mut self.y, l, &phase_lane(&y, l));
+            self.t_prev[l] = self.t[l];
+            self.t[l] = if last[l] {
+                T::Lane::splat(t_end[l].expect("asked"))
+            } else {
+                self.t[l] + h.lane(l)
+            };
+            self.steps[l] += 1;
+            out[l] = Some(Ok(()));
+        }
+        out
+    }
+
+    /// The state of lane `l` at time t within its last step, from its Taylor polynomial.
+    pub fn interpolate(&self, l: usize, t: f64) -> Phase<T::Lane, N, K> {
+        self.jet.eval_lane(l, T::Lane::splat(t) - self.t_prev[l])
     }
 }
 

@@ -232,3 +232,147 @@ fn crossings_located_in_lanes_equal_scalar_ones() {
         }
     }
 }
+
+/// Taylor orbits in SIMD lanes ([`salient_core::lanes`]) give, orbit by orbit, the bits of the
+/// scalar Taylor driver: in f64 and in double-double, 4 and 8 lanes, both instruction sets,
+/// both protocols, with crossings, energy checks and time series, escaping orbits among them,
+/// and orbits the feed abandons (at the same step as a scalar watch abandons them).
+#[test]
+fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
+    use salient_core::adaptive::{
+        integrate_adaptive_watched, Abandoned, Protocol, TaylorOrbit, Watch,
+    };
+    use salient_core::batch::{BatchFeed, Feed, Isa};
+    use salient_core::dd::DoubleDouble;
+    use salient_core::lanes::{integrate_feed_taylor_on, SimdOf, TaylorSetup};
+    use salient_core::section::Crossing;
+    use salient_core::taylor::{Lanewise, Scalar, Taylor};
+    use salient_core::Phase;
+
+    type Outcome = Result<OrbitResult<2>, Abandoned>;
+    /// Orbit `id` is abandoned at its third poll when id % 7 == 3.
+    fn abandons(id: usize, polls: &mut usize) -> bool {
+        *polls += 1;
+        id % 7 == 3 && *polls == 3
+    }
+    struct Slice<'a> {
+        ics: &'a [([f64; 2], [f64; 2])],
+        next: usize,
+        got: Vec<Option<Outcome>>,
+        polls: Vec<usize>,
+        seen: Vec<Vec<Crossing<2>>>,
+    }
+    impl BatchFeed<2> for Slice<'_> {
+        fn next(&mut self, _all_idle: bool) -> Feed<2> {
+            let Some(&(q, p)) = self.ics.get(self.next) else {
+                return Feed::Done;
+            };
+            self.next += 1;
+            Feed::Orbit(self.next - 1, q, p)
+        }
+        fn finished(&mut self, id: usize, r: OrbitResult<2>) {
+            assert!(self.got[id].is_none(), "orbit {id} reported twice");
+            self.got[id] = Some(Ok(r));
+        }
+        fn on_crossing(&mut self, id: usize, c: &Crossing<2>) {
+            self.seen[id].push(*c);
+        }
+        fn cancelled(&mut self, id: usize) -> bool {
+            abandons(id, &mut self.polls[id])
+        }
+        fn abandoned(&mut self, id: usize, steps: u64) {
+            assert!(self.got[id].is_none(), "orbit {id} reported twice");
+            self.got[id] = Some(Err(Abandoned { steps }));
+        }
+    }
+    struct Polls(usize, usize);
+    impl Watch<2> for Polls {
+        fn cancelled(&mut self) -> bool {
+            abandons(self.0, &mut self.1)
+        }
+    }
+
+    fn check<S, const L: usize>(isa: Isa, protocol: Protocol, tau: f64, requests: Requests)
+    where
+        S: Scalar + Lanewise<Lane = S> + SimdOf<L>,
+    {
+        let ham = HenonHeiles;
+        let ics = ics();
+        let config = OrbitConfig::new(tau, 600.0);
+        let setup = TaylorSetup {
+            ham: &ham,
+            delta: 1e-9,
+            protocol,
+            config: &config,
+            requests: &requests,
+        };
+        let start = |q: [f64; 2], p: [f64; 2]| Phase::<S, 2, 2> {
+            q: q.map(S::splat),
+            p: p.map(S::splat),
+            dq: [
+                [S::splat(1.0), S::splat(0.0)],
+                [S::splat(0.0), S::splat(1.0)],
+            ],
+            dp: [[S::splat(0.0); 2]; 2],
+        };
+        let mut feed = Slice {
+            ics: &ics,
+            next: 0,
+            got: vec![None; ics.len()],
+            polls: vec![0; ics.len()],
+            seen: vec![Vec::new(); ics.len()],
+        };
+        integrate_feed_taylor_on::<_, S, 2, 2, L>(isa, &setup, start, &mut feed);
+        let mut statuses = std::collections::HashSet::new();
+        let mut abandoned = 0;
+        for (i, &(q, p)) in ics.iter().enumerate() {
+            let mut integ = TaylorOrbit::new(&ham, Taylor::new(&ham, 1e-9, 0.0, start(q, p)));
+            let want = integrate_adaptive_watched(
+                &ham,
+                &mut integ,
+                protocol,
+                &config,
+                &requests,
+                &mut Polls(i, 0),
+            );
+            let have = feed.got[i].as_ref().expect("every orbit reported");
+            let label = format!("{protocol:?} τ = {tau} L = {L} {isa:?} orbit {i}");
+            match (have, &want) {
+                (Ok(a), Ok(b)) => {
+                    assert!(same_bits(a, b), "{label}:\n lanes  {a:?}\n scalar {b:?}");
+                    assert_eq!(feed.seen[i].len(), b.crossings.len(), "{label}");
+                    statuses.insert(b.status);
+                }
+                (Err(a), Err(b)) => {
+                    assert_eq!(a, b, "{label}");
+                    abandoned += 1;
+                }
+                _ => panic!("{label}:\n lanes  {have:?}\n scalar {want:?}"),
+            }
+        }
+        assert!(abandoned > 0, "no orbit was abandoned");
+        assert!(statuses.len() >= 3, "{statuses:?}");
+    }
+
+    let crossings = Requests {
+        crossings: true,
+        ..Requests::default()
+    };
+    let everything = Requests {
+        crossings: true,
+        energy: true,
+        gali: true,
+        samples_per_decade: 5,
+    };
+    let isas: Vec<Isa> = [Isa::Pinned, Isa::Avx512]
+        .into_iter()
+        .filter(|isa| isa.available())
+        .collect();
+    for &isa in &isas {
+        check::<f64, 4>(isa, Protocol::Restart, 0.5, crossings);
+        check::<f64, 8>(isa, Protocol::Free, 0.5, everything);
+        check::<DoubleDouble, 4>(isa, Protocol::Restart, 0.5, everything);
+        check::<DoubleDouble, 8>(isa, Protocol::Free, 0.1, crossings);
+    }
+    check::<DoubleDouble, 4>(isas[0], Protocol::Restart, 0.05, crossings);
+}

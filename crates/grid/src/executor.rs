@@ -7,13 +7,12 @@
 use crate::geometry::Grid;
 use crate::ledger::{Ledger, Mode, Outcome};
 use rayon::prelude::*;
-use salient_core::adaptive::{Abandoned, Watch};
 use salient_core::batch::{integrate_feed, BatchFeed, Feed, Isa};
 use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
 };
-use salient_core::run::{run_adaptive, MethodRun};
+use salient_core::run::{integrate_feed_adaptive, MethodRun};
 use salient_core::section::on_section;
 use salient_core::section::{locate_upward_lanes, Crossing};
 use salient_core::{HenonHeiles, TangentMap};
@@ -1005,53 +1004,22 @@ fn finish<P>(shared: Mutex<Shared<P>>, claims: &Claims) -> Ledger {
     ledger
 }
 
-/// The adaptive methods' driver over a [`BatchFeed`]: one orbit at a time in scalar code, each
-/// crossing reported as it is located, abandonment polled every few steps.
+/// The adaptive methods' driver over a [`BatchFeed`]: Taylor orbits in SIMD lanes, DOP853
+/// one at a time, each crossing reported as it is located, abandonment polled every few steps.
 fn drive_adaptive(
     grid: &Grid,
     cell_run: &CellRun,
     requests: &Requests,
     feed: &mut impl BatchFeed<2>,
 ) {
-    let ham = HenonHeiles;
-    loop {
-        match feed.next(true) {
-            Feed::Orbit(id, q, p) => {
-                let mut watch = FeedWatch { feed, id };
-                let r = run_adaptive::<_, 2, 2>(
-                    &ham,
-                    &cell_run.run,
-                    grid.energy,
-                    q,
-                    p,
-                    &cell_run.config,
-                    requests,
-                    &mut watch,
-                );
-                match r {
-                    Ok(r) => feed.finished(id, r),
-                    Err(Abandoned { steps }) => feed.abandoned(id, steps),
-                }
-            }
-            Feed::Wait => {}
-            Feed::Done => return,
-        }
-    }
-}
-
-/// A feed's hooks seen from one adaptive orbit.
-struct FeedWatch<'a, F> {
-    feed: &'a mut F,
-    id: usize,
-}
-
-impl<F: BatchFeed<2>> Watch<2> for FeedWatch<'_, F> {
-    fn crossing(&mut self, c: &Crossing<2>) {
-        self.feed.on_crossing(self.id, c);
-    }
-    fn cancelled(&mut self) -> bool {
-        self.feed.cancelled(self.id)
-    }
+    integrate_feed_adaptive::<_, 2, 2>(
+        &HenonHeiles,
+        &cell_run.run,
+        grid.energy,
+        &cell_run.config,
+        requests,
+        feed,
+    );
 }
 
 /// From this step on, embedded fast PSS runs its threads in pairs of a stepping and a

@@ -100,9 +100,9 @@ fn labels_do_not_depend_on_threads_or_window() {
         }
         assert_eq!(cells(&a), cells(&b), "{threads} threads");
     }
-    // Adaptive methods stream one orbit per thread, claiming crossed cells and abandoning
-    // orbits as they go: the labels are those of the sequential rule (rounds of one cell,
-    // the worker's path), with one thread or two.
+    // Adaptive methods stream one orbit per thread (taylor-dd a few per thread, in SIMD
+    // lanes), claiming crossed cells and abandoning orbits as they go: the labels are those of
+    // the sequential rule (rounds of one cell, the worker's path), with one thread or two.
     let mut dop = run.clone();
     dop.run = MethodRun {
         method: Method::Dop853,
@@ -112,7 +112,9 @@ fn labels_do_not_depend_on_threads_or_window() {
     dop.config = OrbitConfig::new(0.5, 500.0);
     let mut taylor = dop.clone();
     taylor.run.method = Method::Taylor;
-    for adaptive in [&dop, &taylor] {
+    let mut taylor_dd = dop.clone();
+    taylor_dd.run.method = Method::TaylorDd;
+    for adaptive in [&dop, &taylor, &taylor_dd] {
         let mut sequential = Ledger::new(&grid, Mode::FastPss);
         while !sequential.done() {
             let next = sequential.needed(1, &|_| false);
