@@ -156,14 +156,18 @@ pub trait TaylorSeries<const N: usize>: Hamiltonian<N> {
     fn hess_vec_coeff<T: Real>(&self, q: &[Series<T>; N], u: &[Series<T>; N], k: usize) -> [T; N];
     /// Coefficient k of ∇V and of D²V·u for every deviation vector u, the same numbers as
     /// [`Self::grad_coeff`] and [`Self::hess_vec_coeff`]; an implementation may compute them
-    /// in one pass, so that the independent sums overlap.
+    /// in one pass, so that the independent sums overlap. Called for k = 0, 1, 2, … in turn
+    /// with the same `derived`: series of q an implementation may fill at order k and read at
+    /// every later order (instead of recomputing them for each).
     #[inline(always)]
     fn all_coeffs<T: Real, const K: usize>(
         &self,
         q: &[Series<T>; N],
         u: &[[Series<T>; N]; K],
+        derived: &mut [Series<T>; 2],
         k: usize,
     ) -> ([T; N], [[T; N]; K]) {
+        let _ = derived;
         (
             self.grad_coeff(q, k),
             core::array::from_fn(|v| self.hess_vec_coeff(q, &u[v], k)),
@@ -203,13 +207,19 @@ impl TaylorSeries<2> for HenonHeiles {
         &self,
         q: &[Series<T>; 2],
         u: &[[Series<T>; 2]; K],
+        derived: &mut [Series<T>; 2],
         k: usize,
     ) -> ([T; 2], [[T; 2]; K]) {
         // The sums of grad_coeff and of every hess_vec_coeff in one pass over j, each summed
         // in the same order as there (same bits); in double-double each sum is a long chain
-        // of dependent operations, and side by side they overlap.
+        // of dependent operations, and side by side they overlap. q1 − q2 and q1 + q2 are
+        // kept as series (`derived`): grad_coeff forms them afresh for every product, which
+        // in double-double was a tenth of the step.
         let (a, b) = (&q[0], &q[1]);
-        let (mut s12, mut sd) = (a[0] * b[k], (a[0] - b[0]) * (a[k] + b[k]));
+        derived[0][k] = a[k] - b[k];
+        derived[1][k] = a[k] + b[k];
+        let (dif, sum) = (&derived[0], &derived[1]);
+        let (mut s12, mut sd) = (a[0] * b[k], dif[0] * sum[k]);
         // Plain loops rather than `array::from_fn`: the compiler may outline an array builder,
         // and a call in this loop costs a `vzeroupper` and stalls store forwarding (it was a
         // fifth of the 8-lane AVX-512 step).
@@ -221,7 +231,7 @@ impl TaylorSeries<2> for HenonHeiles {
         }
         for j in 1..=k {
             s12 = a[j].mul_add(b[k - j], s12);
-            sd = (a[j] - b[j]).mul_add(a[k - j] + b[k - j], sd);
+            sd = dif[j].mul_add(sum[k - j], sd);
             for v in 0..K {
                 let (x, y) = (&u[v][0], &u[v][1]);
                 s1[v] = b[j].mul_add(x[k - j], a[j].mul_add(y[k - j], s1[v]));
@@ -249,6 +259,8 @@ pub struct Jet<T, const N: usize, const K: usize> {
     /// 1/(k + 1) in `T`'s precision, computed once (a double-double division is dozens of
     /// operations, and the recursion needs one per order and step).
     inverse: Series<T>,
+    /// Series of q that [`TaylorSeries::all_coeffs`] keeps across orders.
+    derived: [Series<T>; 2],
 }
 
 impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
@@ -261,6 +273,7 @@ impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
             dp: [z; K],
             order: 0,
             inverse: core::array::from_fn(|k| T::ratio(1.0, (k + 1) as f64)),
+            derived: [[T::splat(0.0); P_MAX + 1]; 2],
         }
     }
 
@@ -279,7 +292,7 @@ impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
         }
         for k in 0..p {
             let inv = self.inverse[k];
-            let (g, hvs) = ham.all_coeffs(&self.q, &self.dq, k);
+            let (g, hvs) = ham.all_coeffs(&self.q, &self.dq, &mut self.derived, k);
             for i in 0..N {
                 self.q[i][k + 1] = self.p[i][k] * inv;
                 self.p[i][k + 1] = -(g[i] * inv);
@@ -727,8 +740,9 @@ mod tests {
             let u: [[Series<T>; 2]; 3] = core::array::from_fn(|_| {
                 core::array::from_fn(|_| core::array::from_fn(|_| next()))
             });
+            let mut derived = [[T::splat(0.0); P_MAX + 1]; 2];
             for k in 0..12 {
-                let (g, h) = HenonHeiles.all_coeffs(&q, &u, k);
+                let (g, h) = HenonHeiles.all_coeffs(&q, &u, &mut derived, k);
                 assert_eq!(g, HenonHeiles.grad_coeff(&q, k), "k = {k}");
                 for v in 0..3 {
                     assert_eq!(h[v], HenonHeiles.hess_vec_coeff(&q, &u[v], k), "k = {k}");
