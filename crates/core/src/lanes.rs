@@ -141,14 +141,14 @@ impl<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: u
     }
     fn energy_error(&self, at: Option<f64>) -> f64 {
         let batch = self.batch.borrow();
-        let y = at.map_or_else(
-            || batch.state(self.lane),
-            |t| batch.interpolate(self.lane, t),
-        );
-        relative(
-            (self.ham.energy(&y.q, &y.p) - self.h0).to_f64(),
-            self.h0.to_f64(),
-        )
+        let energy = match at {
+            None => batch.energy(self.lane),
+            Some(t) => {
+                let y = batch.interpolate(self.lane, t);
+                self.ham.energy(&y.q, &y.p)
+            }
+        };
+        relative((energy - self.h0).to_f64(), self.h0.to_f64())
     }
 }
 

@@ -599,6 +599,10 @@ pub struct TaylorLanes<'h, H, T: Lanewise, const N: usize, const K: usize, const
     t: [T::Lane; L],
     t_prev: [T::Lane; L],
     steps: [u64; L],
+    /// The energy of each lane's current state, computed for all lanes at once after a step
+    /// (the driver checks it after every step; lane by lane, gathering the state first, it
+    /// took 6 % of a taylor-dd run, and 2 % of the run went with it).
+    energy: [T::Lane; L],
     jet: Box<Jet<T, N, K>>,
 }
 
@@ -616,6 +620,7 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
             t: [zero; L],
             t_prev: [zero; L],
             steps: [0; L],
+            energy: [zero; L],
             jet: Box::new(Jet::zero()),
         }
     }
@@ -626,6 +631,13 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
         self.t[l] = T::Lane::splat(t0);
         self.t_prev[l] = self.t[l];
         self.steps[l] = 0;
+        self.energy[l] = self.ham.energy(&y.q, &y.p);
+    }
+
+    /// The energy of lane `l`'s current state (its orbit, not its deviation vectors, so
+    /// renormalising leaves it alone).
+    pub fn energy(&self, l: usize) -> T::Lane {
+        self.energy[l]
     }
 
     /// The state of lane `l`.
@@ -693,8 +705,10 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
             }
         }
         let y = self.jet.eval(h);
+        let energy = self.ham.energy(&y.q, &y.p);
         for l in (0..L).filter(|&l| go[l]) {
             set_phase_lane(&mut self.y, l, &phase_lane(&y, l));
+            self.energy[l] = energy.lane(l);
             self.t_prev[l] = self.t[l];
             self.t[l] = if last[l] {
                 T::Lane::splat(t_end[l].expect("asked"))
