@@ -72,9 +72,10 @@ struct Run {
     /// report must still change nothing).
     stored: Vec<bool>,
     checkpoints: usize,
-    /// Whether a worker thread runs one orbit at a time (DOP853, f64 Taylor) rather than a
-    /// batch of lanes (tangent-map methods, `taylor-dd`); fast-PSS leases are sized by it.
-    one_orbit_per_thread: bool,
+    /// Orbits a worker thread of an adaptive method runs at once (one, or a few SIMD lanes);
+    /// `None` for tangent-map methods, whose threads run a batch of lanes. Fast-PSS leases
+    /// are sized by it.
+    adaptive_orbits_per_thread: Option<usize>,
     tiles: Vec<Tile>,
     cpu_ns: u64,
     started: Option<Instant>,
@@ -135,10 +136,10 @@ impl Run {
             ledger: Ledger::new(&grid, spec.grid.mode),
             stored: vec![false; grid.cells()],
             checkpoints: cell_run.checkpoint_steps().len(),
-            one_orbit_per_thread: matches!(
-                cell_run.run.method,
-                salient_core::Method::Dop853 | salient_core::Method::Taylor
-            ),
+            adaptive_orbits_per_thread: match &cell_run.run.method {
+                salient_core::Method::TangentMap(_) => None,
+                m => Some(salient_core::run::adaptive_orbits_per_thread(m)),
+            },
             tiles: (0..grid.tile_count()).map(|_| Tile::default()).collect(),
             grid,
             cpu_ns: 0,
@@ -767,8 +768,8 @@ impl Scheduler {
                 let job = &self.jobs[&key.0];
                 if job.spec.grid.mode == salient_grid::Mode::FastPss {
                     let mut per_thread = self.cfg.lease_cells_per_thread;
-                    if job.runs[key.1 as usize].one_orbit_per_thread {
-                        per_thread = (per_thread / salient_grid::executor::LANES).max(1);
+                    if let Some(orbits) = job.runs[key.1 as usize].adaptive_orbits_per_thread {
+                        per_thread = (per_thread * orbits / salient_grid::executor::LANES).max(1);
                     }
                     cells.truncate((threads * per_thread).max(1));
                 }

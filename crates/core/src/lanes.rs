@@ -230,14 +230,17 @@ fn drive<H, S, T, const N: usize, const K: usize, const L: usize>(
     let feed = RefCell::new(feed);
     let mut lanes: [Option<(usize, LaneFuture<'_, N>)>; L] = core::array::from_fn(|_| None);
     let mut context = Context::from_waker(Waker::noop());
-    // Polls lane `l`'s orbit; reports it and frees the lane when it has ended.
+    // Polls lane `l`'s orbit; reports it and frees the lane when it has ended (returns true
+    // then).
     let mut poll = |l: usize, lanes: &mut [Option<(usize, LaneFuture<'_, N>)>; L]| {
         let (id, future) = lanes[l].as_mut().expect("a busy lane");
         if let Poll::Ready(outcome) = future.as_mut().poll(&mut context) {
             report(&feed, *id, outcome);
             lanes[l] = None;
+            true
         } else {
             debug_assert!(matches!(slots[l].get(), Slot::Asked(_)));
+            false
         }
     };
     let (mut exhausted, mut waiting) = (false, false);
@@ -307,7 +310,8 @@ fn drive<H, S, T, const N: usize, const K: usize, const L: usize>(
         for l in 0..L {
             if let Some(r) = outcomes[l] {
                 slots[l].set(Slot::Done(r));
-                poll(l, &mut lanes);
+                // A lane that frees up asks for work at once (the feed may have some now).
+                waiting &= !poll(l, &mut lanes);
             }
         }
     }

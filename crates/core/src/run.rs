@@ -7,7 +7,7 @@ use crate::adaptive::{
 use crate::batch::BatchFeed;
 use crate::dd::DoubleDouble;
 use crate::dop853::{Dop853, Dop853Config};
-use crate::lanes::{integrate_feed_scalar, integrate_feed_taylor, TaylorSetup};
+use crate::lanes::{integrate_feed_scalar, integrate_feed_taylor, TaylorSetup, TAYLOR_LANES};
 use crate::method::Method;
 use crate::orbit::{initial_vectors, integrate, OrbitConfig, OrbitResult, Requests};
 use crate::tangent::{Phase, TangentMap};
@@ -93,6 +93,15 @@ pub fn run_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
             let mut integ = TaylorOrbit::new(ham, Taylor::new(ham, delta(), 0.0, y));
             integrate_adaptive_watched(ham, &mut integ, run.protocol, config, requests, watch)
         }
+    }
+}
+
+/// How many orbits one thread of [`integrate_feed_adaptive`] integrates at once with the
+/// adaptive `method` (schedulers size their work by it).
+pub fn adaptive_orbits_per_thread(method: &Method) -> usize {
+    match method {
+        Method::TaylorDd => TAYLOR_LANES,
+        _ => 1,
     }
 }
 

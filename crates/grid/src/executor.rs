@@ -12,7 +12,7 @@ use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
 };
-use salient_core::run::{integrate_feed_adaptive, MethodRun};
+use salient_core::run::{adaptive_orbits_per_thread, integrate_feed_adaptive, MethodRun};
 use salient_core::section::on_section;
 use salient_core::section::{locate_upward_lanes, Crossing};
 use salient_core::{HenonHeiles, TangentMap};
@@ -383,8 +383,11 @@ pub fn integrate_cells_with(
         Method::TangentMap(scheme) => Some(TangentMap::new(&ham, scheme, cell_run.config.tau)),
         _ => None,
     };
-    // A batched driver fills `lanes` orbits at a time; an adaptive one runs one.
-    let per_driver = map.as_ref().map_or(1, |m| lanes(mode, m.tau()));
+    // A batched driver fills `lanes` orbits at a time; an adaptive one runs one or a few.
+    let per_driver = map.as_ref().map_or_else(
+        || adaptive_orbits_per_thread(&cell_run.run.method),
+        |m| lanes(mode, m.tau()),
+    );
     let cursor = AtomicUsize::new(0);
     let finished = Mutex::new(Vec::new());
     let drivers = rayon::current_num_threads().min(cells.len().div_ceil(per_driver));
