@@ -453,17 +453,22 @@ impl StepRule {
     /// test, so the step the roots would give lands on t_end just the same: the test changes
     /// the cost, never the step. In the restart protocol at small τ nearly every step is cut to
     /// τ and needs no more. The bounds for r are kept in `test` and reused while the reach
-    /// stays below it.
+    /// stays just below it.
+    #[inline(always)]
     fn natural_step(&self, n: [f64; 3], reach: f64, test: &mut ReachTest) -> f64 {
         let p = self.order;
         let scale = n[0].max(1.0);
         let norms = [n[1] / scale, n[2] / scale];
-        if !(reach > 0.0 && reach <= test.reach) {
+        // Bounds for a much larger reach would be needlessly strict (more roots), so they are
+        // reused only within a hair below it.
+        if !(reach > 0.0 && reach <= test.reach && reach >= test.reach * (1.0 - 1e-5)) {
             // Slack above this reach, so that the restart protocol's reaches (τ up to the
             // rounding of the multiples of τ) share one computation.
             let r = reach * (1.0 + 1e-6);
             let x = self.factors.0 * self.factors.1 / r;
-            let bound = [0, 1].map(|i| 0.5 * x.powi((p - 1 + i) as i32));
+            // ½ x^(p−1) and ½ x^p (one power: how they round is far inside the margin).
+            let low = 0.5 * x.powi((p - 1) as i32);
+            let bound = [low, low * x];
             // An infinite bound would pass norms too large for the argument above.
             *test = if bound.iter().all(|b| b.is_finite()) && r > 0.0 {
                 ReachTest { reach: r, bound }
