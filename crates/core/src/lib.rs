@@ -1,10 +1,14 @@
 //! The numerical kernel of Salient: Hamiltonians H = ½|p|² + V(q) ([`Hamiltonian`],
 //! [`HenonHeiles`]), symplectic splitting schemes as data ([`Scheme`]), the tangent-map method
 //! that advances an orbit and its deviation vectors together ([`TangentMap`], and
-//! [`batch::Batch`] for several orbits in SIMD lanes), chaos indicators (SALI, GALI_k, the
-//! maximal Lyapunov exponent), section crossings, and the one-orbit driver ([`orbit`]).
+//! [`batch::integrate_feed`] for several orbits in SIMD lanes), chaos indicators (SALI, GALI_k, the
+//! maximal Lyapunov exponent), section crossings, the one-orbit drivers ([`orbit`],
+//! [`adaptive`]) and adaptive orbits in SIMD lanes ([`lanes`]).
 //!
-//! No I/O, no threads, no async: callers own all of that.
+//! No I/O, no threads, no async runtime: callers own all of that. The adaptive driver is an
+//! `async fn` only as a coroutine — a lane of a SIMD batch suspends it at each step until the
+//! batch has stepped ([`lanes`]); it is polled by hand, never by an executor, and waits on
+//! nothing else.
 
 // Index loops over phase-space components mirror the formulas they implement.
 #![allow(clippy::needless_range_loop)]

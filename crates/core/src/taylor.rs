@@ -7,7 +7,8 @@
 //! Zou (Exp. Math. 14, 2005): p = ⌊1.5 − 1.16 log10 δ⌋ and h = min(ρ_{p−1}, ρ_p) e^{−2}
 //! e^{−0.7/(p−1)} with ρ_j = ‖x_[j]‖^{−1/j} (research/dop853-taylor.md §3.1). No step is
 //! rejected; the polynomial is the dense output. Generic over the number type, so the same code
-//! runs in f64 (`taylor`) and in double-double (`taylor-dd`).
+//! runs in f64 (`taylor`) and in double-double (`taylor-dd`), one orbit at a time ([`Taylor`])
+//! or several in SIMD lanes ([`TaylorLanes`]).
 
 use crate::dd::DoubleDouble;
 use crate::dop853::StepFailure;
