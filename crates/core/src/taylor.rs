@@ -459,7 +459,6 @@ impl StepRule {
     fn natural_step(&self, n: [f64; 3], reach: f64, test: &mut ReachTest) -> f64 {
         let p = self.order;
         let scale = n[0].max(1.0);
-        let norms = [n[1] / scale, n[2] / scale];
         // Bounds for a much larger reach would be needlessly strict (more roots), so they are
         // reused only within a hair below it.
         if !(reach > 0.0 && reach <= test.reach && reach >= test.reach * (1.0 - 1e-5)) {
@@ -477,7 +476,10 @@ impl StepRule {
                 ReachTest::NONE
             };
         }
-        let surely_reaches = (0..2).all(|i| norms[i].is_finite() && norms[i] <= test.bound[i]);
+        // ‖x_[j]‖/scale ≤ bound, multiplied out: no division on the common path (the roots
+        // below divide as the rule is written; the test only decides whether they are needed).
+        let surely_reaches =
+            (0..2).all(|i| n[1 + i].is_finite() && n[1 + i] <= test.bound[i] * scale);
         if surely_reaches {
             return f64::INFINITY;
         }
