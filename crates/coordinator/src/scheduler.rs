@@ -21,8 +21,9 @@ pub struct Config {
     /// How often workers poll while busy.
     pub poll: Duration,
     /// Fast PSS: cells per worker thread in one lease, for tangent-map methods (whose
-    /// threads run `executor::LANES` orbits at a time); adaptive methods run one orbit per
-    /// thread and get a `LANES`-th of it, at least 1. Small leases are judged on fresher
+    /// threads run `executor::LANES` orbits at a time); adaptive methods get it scaled by
+    /// the orbits a thread runs at once (`run::adaptive_orbits_per_thread`: one, taylor-dd
+    /// four) over `LANES`, at least 1. Small leases are judged on fresher
     /// claims (less dropped work); large ones cost fewer round trips.
     pub lease_cells_per_thread: usize,
     /// Largest grid (cells in all) a submitted spec may ask for.

@@ -5,8 +5,9 @@
 //! the scalar integrator computes, so every orbit's result is bit-identical to its scalar run.
 //!
 //! Taylor methods only: their step is one fixed sequence of operations whatever its size, so
-//! lanes never diverge in control flow (DOP853 rejects steps lane by lane and runs one orbit
-//! at a time, through [`integrate_feed_scalar`]).
+//! lanes never diverge in control flow (DOP853 rejects steps lane by lane). In use for
+//! `taylor-dd`; DOP853 and f64 Taylor run one orbit at a time, through
+//! [`integrate_feed_scalar`] (see [`crate::run::integrate_feed_adaptive`]).
 
 use crate::adaptive::Abandoned;
 use crate::adaptive::{

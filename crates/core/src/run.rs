@@ -107,8 +107,9 @@ pub fn adaptive_orbits_per_thread(method: &Method) -> usize {
 
 /// Integrates the orbits `feed` supplies with an adaptive method, each as [`run_adaptive`]
 /// would under a watch that passes its crossings to the feed and lets the feed abandon it, and
-/// hands each result to the feed as its orbit ends: the Taylor methods several orbits at a time
-/// in SIMD lanes ([`crate::lanes`], the same bits), DOP853 one at a time.
+/// hands each result to the feed as its orbit ends: `taylor-dd` [`adaptive_orbits_per_thread`]
+/// orbits at a time in SIMD lanes ([`crate::lanes`], the same bits), DOP853 and f64 Taylor one
+/// at a time.
 pub fn integrate_feed_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
     ham: &H,
     run: &MethodRun,
@@ -117,14 +118,6 @@ pub fn integrate_feed_adaptive<H: TaylorSeries<N>, const N: usize, const K: usiz
     requests: &Requests,
     feed: &mut impl BatchFeed<N>,
 ) {
-    let setup = TaylorSetup {
-        ham,
-        delta: run.delta.expect("adaptive methods carry a tolerance"),
-        protocol: run.protocol,
-        config,
-        requests,
-    };
-    let vectors = initial_vectors::<N, K>(config.deviation);
     match &run.method {
         Method::TangentMap(_) => panic!("integrate_feed_adaptive is for adaptive methods"),
         // One orbit at a time: DOP853 rejects steps lane by lane, and an f64 Taylor step is
@@ -133,11 +126,21 @@ pub fn integrate_feed_adaptive<H: TaylorSeries<N>, const N: usize, const K: usiz
         Method::Dop853 | Method::Taylor => integrate_feed_scalar(feed, |q, p, watch| {
             run_adaptive::<H, N, K>(ham, run, energy, q, p, config, requests, watch)
         }),
-        Method::TaylorDd => integrate_feed_taylor::<H, DoubleDouble, N, K>(
-            &setup,
-            |q, p| dd_start(ham, energy, q, p, vectors),
-            feed,
-        ),
+        Method::TaylorDd => {
+            let setup = TaylorSetup {
+                ham,
+                delta: run.delta.expect("adaptive methods carry a tolerance"),
+                protocol: run.protocol,
+                config,
+                requests,
+            };
+            let vectors = initial_vectors::<N, K>(config.deviation);
+            integrate_feed_taylor::<H, DoubleDouble, N, K>(
+                &setup,
+                |q, p| dd_start(ham, energy, q, p, vectors),
+                feed,
+            )
+        }
     }
 }
 
