@@ -13,6 +13,11 @@ use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tonic::Status;
 
+/// Fast PSS: tiles past the frontier's tile that leases may take cells from, per worker. One
+/// starved streaming workers at small τ, where the frontier orbit runs long (400×400, τ = 0.01,
+/// t = 1e4, 1 worker × 2 threads: 10.8 s with one, 8.8–9.1 s with four; τ = 0.5 unchanged).
+const WINDOW_TILES_PER_WORKER: usize = 4;
+
 /// Timing of leases and polls.
 #[derive(Clone, Copy, Debug)]
 pub struct Config {
@@ -577,12 +582,13 @@ impl Scheduler {
                     .canonical()
                     .get(run.ledger.frontier())
                     .map_or(0, |&c| run.grid.tile_of(c));
-                // Speculation beyond the frontier's tile is bounded to about a tile per worker:
+                // Speculation beyond the frontier's tile is bounded to a few tiles per worker:
                 // further cells are likely to be labelled meanwhile, and scanning the whole
                 // grid on every poll of an idle worker cost the coordinator more CPU than the
                 // leases themselves. (Later runs of the job are scanned next: their frontier
                 // is certain work.)
-                let last = (first + 1 + self.workers.len().max(1)).min(run.tiles.len());
+                let ahead = WINDOW_TILES_PER_WORKER * self.workers.len().max(1);
+                let last = (first + 1 + ahead).min(run.tiles.len());
                 for t in first..last {
                     if run.tiles[t].lease.is_some() {
                         continue;

@@ -419,6 +419,127 @@ pub fn integrate_cells_with(
     out.into_iter().flatten().collect()
 }
 
+/// Where [`integrate_stream`] gets its cells and sends their results: a worker's leases,
+/// which arrive while earlier ones still run.
+pub trait CellSource: Sync {
+    /// The next cell to integrate. `all_idle`: no lane of the asking driver has work (the
+    /// source may block a moment before it answers [`Take::Wait`]).
+    fn take(&self, all_idle: bool) -> Take;
+    /// The orbit of an entry [`Take::Cell`] gave ended: its outcome, or `None` when it was
+    /// skipped (`steps` = 0) or abandoned after `steps` steps.
+    fn ended(&self, entry: u64, outcome: Option<Outcome>, steps: u64);
+    /// Whether the orbit of `cell` finished here and its outcome is not known to the ledger's
+    /// owner yet: the cells it crossed are as good as claimed.
+    fn finished_here(&self, cell: u32) -> bool;
+}
+
+/// A [`CellSource`]'s answer.
+pub enum Take {
+    /// An entry: the cell in the low 32 bits, the rest the source's own (the same cell may
+    /// come again, in another lease, while its earlier orbit still runs).
+    Cell(u64),
+    /// Nothing to integrate now; ask again.
+    Wait,
+    /// Nothing more will come.
+    Done,
+}
+
+/// The tile executor over a stream of cells: every thread of the current rayon pool drives
+/// its lanes from `source` until it says [`Take::Done`], so lanes freed by an orbit that ended
+/// take the next cell whatever lease it came in (a lease run on its own leaves lanes idle
+/// until its longest orbit ends). Claims as in [`integrate_cells_with`]: a cell claimed, or
+/// crossed by an orbit running here, is skipped, and orbits are abandoned when claimed.
+pub fn integrate_stream(
+    grid: &Grid,
+    cell_run: &CellRun,
+    mode: Mode,
+    claims: &Claims,
+    source: &impl CellSource,
+) {
+    let ham = HenonHeiles;
+    let requests = requests_for(cell_run, mode);
+    let checkpoints = cell_run.checkpoint_steps();
+    let map = match &cell_run.run.method {
+        Method::TangentMap(scheme) => Some(TangentMap::new(&ham, scheme, cell_run.config.tau)),
+        _ => None,
+    };
+    rayon::broadcast(|_| {
+        let mut feed = StreamFeed {
+            grid,
+            cell_run,
+            checkpoints: &checkpoints,
+            claims,
+            source,
+        };
+        match &map {
+            Some(map) => drive(map, &cell_run.config, &requests, mode, &mut feed),
+            None => drive_adaptive(grid, cell_run, &requests, &mut feed),
+        }
+    });
+}
+
+/// A driver's feed from a [`CellSource`]; orbits are known by their entry.
+struct StreamFeed<'a, S> {
+    grid: &'a Grid,
+    cell_run: &'a CellRun,
+    checkpoints: &'a [u64],
+    claims: &'a Claims,
+    source: &'a S,
+}
+
+impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
+    fn next(&mut self, all_idle: bool) -> Feed<2> {
+        loop {
+            let (entry, cell) = match self.source.take(all_idle) {
+                Take::Cell(e) => (e, e as u32),
+                Take::Wait => return Feed::Wait,
+                Take::Done => return Feed::Done,
+            };
+            let claims = self.claims;
+            if claims.is_claimed(cell)
+                || claims.running_crosser(self.grid, cell).is_some()
+                || claims.crosser(cell).is_some_and(|by| {
+                    self.source
+                        .finished_here(self.grid.canonical()[by as usize])
+                })
+            {
+                // Left without an outcome: the coordinator leases it again if it still needs it.
+                self.source.ended(entry, None, 0);
+                continue;
+            }
+            claims.set_running(cell, true);
+            let (q, p) = initial_point(self.grid, cell);
+            return Feed::Orbit(entry as usize, q, p);
+        }
+    }
+    fn finished(&mut self, id: usize, r: OrbitResult<2>) {
+        let cell = id as u32;
+        self.claims.set_running(cell, false);
+        let visited = crossed_cells(self.grid, &r.crossings);
+        let o = outcome(self.cell_run, self.checkpoints, cell, &r, visited);
+        self.source.ended(id as u64, Some(o), r.steps);
+    }
+    fn on_crossing(&mut self, id: usize, c: &Crossing<2>) {
+        if let Some(to) = self.grid.cell_of(c.q[1], c.p[1]) {
+            let from = id as u32;
+            if self.claims.is_frontier(from) {
+                self.claims.claim_crossed(to);
+            }
+            self.claims.note_crossed(from, to);
+        }
+    }
+    fn cancelled(&mut self, id: usize) -> bool {
+        let cell = id as u32;
+        self.claims.is_claimed(cell) || self.claims.probably_labelled(self.grid, cell)
+    }
+    fn abandoned(&mut self, id: usize, steps: u64) {
+        let cell = id as u32;
+        self.claims.set_running(cell, false);
+        self.claims.record_abandoned(steps);
+        self.source.ended(id as u64, None, steps);
+    }
+}
+
 /// What the embedded fast-PSS engine shares between its drivers.
 struct Shared<P> {
     ledger: Ledger,

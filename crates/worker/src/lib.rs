@@ -1,19 +1,21 @@
-//! The worker: registers with a coordinator, keeps one or a few tile leases, integrates each
-//! lease's cells with the grid's tile executor on a rayon pool — the same code `salient run`
-//! uses — and reports outcomes chunk by chunk in its polls. Reports stay
-//! in an outbox until acknowledged, so they survive a coordinator restart; on drain it finishes
-//! the lease in progress, releases the ones not started, and deregisters.
+//! The worker: registers with a coordinator, keeps a few tile leases, and runs the cells of
+//! every lease of one run through one stream of the grid's tile executor on a rayon pool — the
+//! same code `salient run` uses — so a lane freed by an ended orbit takes the next leased cell
+//! whatever lease it came in. Outcomes go out in its polls as orbits end. Reports stay in an
+//! outbox until acknowledged, so they survive a coordinator restart; on drain it finishes the
+//! leases it started, releases the ones not started, and deregisters.
 
-use salient_grid::executor::{integrate_cells_with, lanes, Claims};
+use salient_grid::executor::{integrate_stream, CellSource, Claims, Take};
 use salient_grid::spec::{self, JobSpec};
+use salient_grid::Outcome;
 use salient_grid::{CellRun, Grid};
 use salient_proto::v1;
 use salient_proto::v1::worker_service_client::WorkerServiceClient;
 use salient_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION};
-use std::collections::{HashMap, HashSet};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::future::Future;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 use tokio::sync::mpsc;
 use tonic::service::interceptor::InterceptedService;
@@ -34,14 +36,16 @@ pub struct Options {
 }
 
 /// Leases to ask for: up to `max` held, but one at a time while the last lease was fast PSS
-/// (and before any lease came). A fast-PSS lease is the next cells the coordinator's ledger
-/// needs; a second one would take cells before the outcomes that may label them arrive, and
-/// measured slower (400×400 at t = 1e4 and 1e5: 0.94 and 3.9 s with one, 1.0–1.2 and 4.8 s with
-/// two). Full-mode tiles carry no such risk, and a second one keeps the threads busy across the
+/// (and before any lease came), and one more whenever the compute side is `hungry` (a lane
+/// idle with no leased cell waiting; the leases held then are only finishing their orbits). A
+/// fast-PSS lease is the next cells the coordinator's ledger needs; one asked for before a
+/// lane is free would take cells before the outcomes that may label them arrive, and measured
+/// slower (400×400 at t = 1e4 and 1e5: 0.94 and 3.9 s with one, 1.0–1.2 and 4.8 s with two).
+/// Full-mode tiles carry no such risk, and a second one keeps the threads busy across the
 /// round trip.
-fn free_slots(held: usize, one_at_a_time: bool, max: usize) -> usize {
+fn free_slots(held: usize, hungry: bool, one_at_a_time: bool, max: usize) -> usize {
     let cap = if one_at_a_time { 1 } else { max };
-    cap.saturating_sub(held)
+    cap.saturating_sub(held).max(usize::from(hungry))
 }
 
 /// CPU time of this process (user + system) in seconds, from /proc on Linux; NaN elsewhere.
@@ -122,18 +126,36 @@ enum Done {
     Report(v1::TileReport),
     /// Not started because the worker is draining.
     Released(v1::TileRef),
+    /// A lane is idle and no leased cell waits: time for another lease.
+    Hungry,
 }
 
-/// Cells to skip and leases revoked, written by the network side, read between chunks; and
-/// per run the claims through which a skip abandons an orbit already running.
+/// Cells to skip and leases revoked, written by the network side, read by the compute side;
+/// and per run the claims through which a skip abandons an orbit already running.
 #[derive(Default)]
 struct Signals {
     /// By lease (job, run, tile, attempt).
-    skips: HashMap<(u64, u32, u32, u32), HashSet<u32>>,
-    revoked: HashSet<(u64, u32, u32, u32)>,
+    skips: HashMap<LeaseKey, HashSet<u32>>,
+    revoked: HashSet<LeaseKey>,
     claims: HashMap<(u64, u32), Arc<Claims>>,
+    /// Outcomes of leases still running, for the next poll: a report that woke the network
+    /// side for every outcome made a poll (and a store commit) of each, and the coordinator
+    /// shares the cores.
+    partial: Vec<v1::TileReport>,
 }
 
+type LeaseKey = (u64, u32, u32, u32);
+
+fn lease_key(l: &v1::TileRef) -> LeaseKey {
+    (l.job, l.run, l.tile, l.attempt)
+}
+
+/// The compute side: runs every lease of one run through one stream of the tile executor
+/// ([`integrate_stream`]), so lanes freed by an ended orbit take the next leased cell at once
+/// whatever lease it came in, and a lease's outcomes go out as its orbits end. (Run lease by
+/// lease, each lease waited for its longest orbit with the other lanes idle: 400×400 at
+/// τ = 0.01, 1 worker × 2 threads, 11 s against 3.9 s embedded.) A lease for another run ends
+/// the stream when the cells already leased are done.
 fn compute_thread(
     pool: rayon::ThreadPool,
     work: std::sync::mpsc::Receiver<Work>,
@@ -145,13 +167,20 @@ fn compute_thread(
     // another store reuses job ids), and few: a worker moves through runs in order.
     type Built = (Arc<JobSpec>, Grid, CellRun, Arc<Claims>);
     let mut runs: HashMap<(u64, u32), Built> = HashMap::new();
-    while let Ok(w) = work.recv() {
-        let key = w.lease.key();
-        let lease_key = (key.0, key.1, key.2, w.lease.attempt);
+    let mut next: Option<Work> = None;
+    loop {
+        let w = match next.take() {
+            Some(w) => w,
+            None => match work.recv() {
+                Ok(w) => w,
+                Err(_) => return,
+            },
+        };
         if draining.load(Ordering::Relaxed) {
             let _ = done.send(Done::Released(w.lease));
             continue;
         }
+        let key = w.lease.key();
         if runs
             .get(&(key.0, key.1))
             .is_some_and(|b| !Arc::ptr_eq(&b.0, &w.spec))
@@ -160,7 +189,7 @@ fn compute_thread(
             runs.clear();
             signals.lock().expect("signals").claims.clear();
         }
-        let (_, grid, cell_run, claims) = runs.entry((key.0, key.1)).or_insert_with(|| {
+        let (spec, grid, cell_run, claims) = runs.entry((key.0, key.1)).or_insert_with(|| {
             let grid = w.spec.grid();
             let claims = Arc::new(Claims::external(&grid));
             let mut s = signals.lock().expect("signals");
@@ -172,11 +201,93 @@ fn compute_thread(
                 claims,
             )
         });
+        let source = LeaseSource {
+            state: Mutex::new(SourceState::default()),
+            waiting: AtomicUsize::new(0),
+            hungry: AtomicBool::new(false),
+            more: Condvar::new(),
+            done: done.clone(),
+            signals: signals.clone(),
+            draining: draining.clone(),
+        };
+        source.add(w, claims);
+        let mode = spec.grid.mode;
+        std::thread::scope(|scope| {
+            scope
+                .spawn(|| pool.install(|| integrate_stream(grid, cell_run, mode, claims, &source)));
+            // Leases of the same run join the stream; another run's lease, or the network
+            // side's end, closes it.
+            loop {
+                match work.recv() {
+                    Ok(w) if draining.load(Ordering::Relaxed) => {
+                        let _ = done.send(Done::Released(w.lease));
+                    }
+                    Ok(w)
+                        if (w.lease.job, w.lease.run) == (key.0, key.1)
+                            && Arc::ptr_eq(&w.spec, spec) =>
+                    {
+                        source.add(w, claims);
+                    }
+                    Ok(w) => {
+                        next = Some(w);
+                        break;
+                    }
+                    Err(_) => break,
+                }
+            }
+            source.close();
+        });
+    }
+}
+
+/// The leases of one stream: their cells waiting in order, and per lease what has ended.
+struct LeaseSource {
+    state: Mutex<SourceState>,
+    /// Entries waiting in the queue, readable without the lock: idle lanes ask every few
+    /// steps, and taking the lock for each (shared by all threads) was half the run.
+    waiting: AtomicUsize,
+    /// `Done::Hungry` went out since the last lease came.
+    hungry: AtomicBool,
+    /// Signalled when cells arrive or the stream closes.
+    more: Condvar,
+    done: mpsc::UnboundedSender<Done>,
+    signals: Arc<Mutex<Signals>>,
+    draining: Arc<AtomicBool>,
+}
+
+#[derive(Default)]
+struct SourceState {
+    /// Entries (see [`Take::Cell`]) not started, in lease order.
+    queue: VecDeque<u64>,
+    /// The lease of every entry queued or running.
+    lease_of: HashMap<u64, LeaseKey>,
+    leases: HashMap<LeaseKey, LeaseProgress>,
+    /// Entries handed out so far (the high bits of the next one).
+    serial: u64,
+    closed: bool,
+    /// Process CPU time when the last finishing report went out.
+    cpu_mark: Option<f64>,
+}
+
+struct LeaseProgress {
+    lease: v1::TileRef,
+    /// Entries queued or running.
+    left: usize,
+    /// Entries handed out.
+    started: usize,
+    abandoned: (u64, u64),
+    /// Cells whose orbits finished in this lease.
+    finished: HashSet<u32>,
+}
+
+impl LeaseSource {
+    fn add(&self, w: Work, claims: &Claims) {
+        let key = lease_key(&w.lease);
         {
-            // The coordinator leases a cell only when it needs it: a claim left from an earlier
-            // skip of this cell must not abandon it now.
-            let s = signals.lock().expect("signals");
-            let skips = s.skips.get(&lease_key);
+            // The coordinator leases a cell only when it needs it: a claim left from an
+            // earlier skip of this cell must not abandon it now.
+            let s = self.signals.lock().expect("signals");
+            let skips = s.skips.get(&key);
             for &c in &w.cells {
                 if skips.is_some_and(|sk| sk.contains(&c)) {
                     claims.claim(c);
@@ -185,60 +296,202 @@ fn compute_thread(
                 }
             }
         }
-        let abandoned0 = claims.abandoned();
-        let mode = w.spec.grid.mode;
-        // Two batches per driver, in the lane count the executor will run this lease with.
-        let chunk = (pool.current_num_threads() * lanes(mode, cell_run.config.tau) * 2).max(8);
-        let mut rest = w.cells.as_slice();
-        loop {
-            let take = {
-                let s = signals.lock().expect("signals");
-                if s.revoked.contains(&lease_key) {
-                    break;
-                }
-                let skip = s.skips.get(&lease_key);
-                let (now, later) = rest.split_at(chunk.min(rest.len()));
-                rest = later;
-                now.iter()
-                    .copied()
-                    .filter(|c| !skip.is_some_and(|s| s.contains(c)))
-                    .collect::<Vec<u32>>()
-            };
-            let cpu0 = process_cpu_seconds();
-            let outcomes =
-                pool.install(|| integrate_cells_with(grid, cell_run, mode, &take, Some(claims)));
-            let cpu_ns = ((process_cpu_seconds() - cpu0).max(0.0) * 1e9) as u64;
-            let finished = rest.is_empty();
-            let abandoned = claims.abandoned();
-            let report = v1::TileReport {
-                lease: Some(w.lease),
-                outcomes: outcomes.iter().map(v1::Outcome::from).collect(),
-                finished,
-                cpu_ns,
-                // The lease's total, sent once with the finishing report.
-                abandoned_orbits: if finished {
-                    abandoned.0 - abandoned0.0
-                } else {
-                    0
-                },
-                abandoned_steps: if finished {
-                    abandoned.1 - abandoned0.1
-                } else {
-                    0
-                },
-            };
-            if (!report.outcomes.is_empty() || finished) && done.send(Done::Report(report)).is_err()
-            {
-                return;
-            }
-            if finished {
-                break;
+        let mut st = self.state.lock().expect("lease source");
+        self.hungry.store(false, Ordering::Relaxed);
+        st.cpu_mark.get_or_insert_with(process_cpu_seconds);
+        for &c in &w.cells {
+            st.serial += 1;
+            let entry = (st.serial << 32) | c as u64;
+            st.queue.push_back(entry);
+            st.lease_of.insert(entry, key);
+        }
+        self.waiting.store(st.queue.len(), Ordering::Relaxed);
+        st.leases.insert(
+            key,
+            LeaseProgress {
+                lease: w.lease,
+                left: w.cells.len(),
+                started: 0,
+                abandoned: (0, 0),
+                finished: HashSet::new(),
+            },
+        );
+        if w.cells.is_empty() {
+            self.end_lease(&mut st, key, Vec::new());
+        }
+        drop(st);
+        self.more.notify_all();
+    }
+
+    /// A lane is idle and no entry waits: asks the network side for a lease (once until one
+    /// comes).
+    fn say_hungry(&self) {
+        if !self.hungry.load(Ordering::Relaxed) && !self.hungry.swap(true, Ordering::Relaxed) {
+            let _ = self.done.send(Done::Hungry);
+        }
+    }
+
+    fn close(&self) {
+        self.state.lock().expect("lease source").closed = true;
+        // Wakes the lanes that wait for entries, so they see the end.
+        self.waiting.store(usize::MAX, Ordering::Relaxed);
+        self.more.notify_all();
+    }
+
+    /// Draining: leases none of whose cells started go back to the coordinator.
+    fn release_unstarted(&self, st: &mut SourceState) {
+        let unstarted: Vec<LeaseKey> = st
+            .leases
+            .iter()
+            .filter(|(_, p)| p.started == 0)
+            .map(|(k, _)| *k)
+            .collect();
+        if unstarted.is_empty() {
+            return;
+        }
+        let SourceState {
+            queue, lease_of, ..
+        } = st;
+        queue.retain(|e| !unstarted.contains(&lease_of[e]));
+        lease_of.retain(|_, k| !unstarted.contains(k));
+        if !st.closed {
+            self.waiting.store(st.queue.len(), Ordering::Relaxed);
+        }
+        for k in unstarted {
+            if let Some(p) = st.leases.remove(&k) {
+                let _ = self.done.send(Done::Released(p.lease));
             }
         }
-        let mut s = signals.lock().expect("signals");
-        s.skips.remove(&lease_key);
-        s.revoked.remove(&lease_key);
     }
+
+    /// Sends the lease's finishing report and forgets it.
+    fn end_lease(&self, st: &mut SourceState, key: LeaseKey, outcomes: Vec<v1::Outcome>) {
+        let Some(p) = st.leases.remove(&key) else {
+            return;
+        };
+        let now = process_cpu_seconds();
+        let cpu = st.cpu_mark.replace(now).map_or(0.0, |m| (now - m).max(0.0));
+        let _ = self.done.send(Done::Report(v1::TileReport {
+            lease: Some(p.lease),
+            outcomes,
+            finished: true,
+            cpu_ns: (cpu * 1e9) as u64,
+            abandoned_orbits: p.abandoned.0,
+            abandoned_steps: p.abandoned.1,
+        }));
+        let mut s = self.signals.lock().expect("signals");
+        s.skips.remove(&key);
+        s.revoked.remove(&key);
+    }
+}
+
+impl CellSource for LeaseSource {
+    fn take(&self, all_idle: bool) -> Take {
+        if !all_idle && self.waiting.load(Ordering::Relaxed) == 0 {
+            self.say_hungry();
+            return Take::Wait;
+        }
+        let mut st = self.state.lock().expect("lease source");
+        if self.draining.load(Ordering::Relaxed) {
+            self.release_unstarted(&mut st);
+        }
+        loop {
+            while let Some(entry) = st.queue.pop_front() {
+                if !st.closed {
+                    self.waiting.store(st.queue.len(), Ordering::Relaxed);
+                }
+                let key = st.lease_of[&entry];
+                if let Some(p) = st.leases.get_mut(&key) {
+                    p.started += 1;
+                }
+                // A revoked lease's cells are not started (its reports would be stale).
+                if self.signals.lock().expect("signals").revoked.contains(&key) {
+                    drop(st);
+                    self.ended(entry, None, 0);
+                    st = self.state.lock().expect("lease source");
+                    continue;
+                }
+                return Take::Cell(entry);
+            }
+            if st.closed {
+                return Take::Done;
+            }
+            self.say_hungry();
+            if !all_idle {
+                return Take::Wait;
+            }
+            // Every lane is idle: wait for a lease rather than spin.
+            let (g, timeout) = self
+                .more
+                .wait_timeout(st, Duration::from_millis(5))
+                .expect("lease source");
+            st = g;
+            if timeout.timed_out() && st.queue.is_empty() && !st.closed {
+                return Take::Wait;
+            }
+        }
+    }
+
+    fn ended(&self, entry: u64, outcome: Option<Outcome>, steps: u64) {
+        let mut st = self.state.lock().expect("lease source");
+        let Some(key) = st.lease_of.remove(&entry) else {
+            return;
+        };
+        let Some(p) = st.leases.get_mut(&key) else {
+            return;
+        };
+        p.left -= 1;
+        let mut outcomes = Vec::new();
+        match &outcome {
+            Some(o) => {
+                p.finished.insert(o.cell);
+                outcomes.push(v1::Outcome::from(o));
+            }
+            None if steps > 0 => {
+                p.abandoned.0 += 1;
+                p.abandoned.1 += steps;
+            }
+            None => {}
+        }
+        if p.left == 0 {
+            self.end_lease(&mut st, key, outcomes);
+        } else if !outcomes.is_empty() {
+            // Out with the next poll (before the lease's finishing report, which is sent
+            // after this and makes the network side collect these first).
+            let lease = p.lease;
+            let mut s = self.signals.lock().expect("signals");
+            match s.partial.last_mut() {
+                Some(r) if r.lease == Some(lease) => r.outcomes.extend(outcomes),
+                _ => s.partial.push(v1::TileReport {
+                    lease: Some(lease),
+                    outcomes,
+                    finished: false,
+                    cpu_ns: 0,
+                    abandoned_orbits: 0,
+                    abandoned_steps: 0,
+                }),
+            }
+        }
+    }
+
+    fn finished_here(&self, cell: u32) -> bool {
+        let st = self.state.lock().expect("lease source");
+        st.leases.values().any(|p| p.finished.contains(&cell))
+    }
+}
+
+/// Moves the outcomes of running leases into the outbox (those of leases still held).
+fn collect_partial(
+    signals: &Mutex<Signals>,
+    held: &[v1::TileRef],
+    outbox: &mut Vec<v1::TileReport>,
+) {
+    let partial = std::mem::take(&mut signals.lock().expect("signals").partial);
+    outbox.extend(
+        partial
+            .into_iter()
+            .filter(|r| held.iter().any(|h| Some(h) == r.lease.as_ref())),
+    );
 }
 
 async fn connect(opts: &Options) -> Result<Client, String> {
@@ -310,6 +563,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
     let mut specs: HashMap<u64, (String, Arc<JobSpec>)> = HashMap::new();
     let mut held: Vec<v1::TileRef> = Vec::new();
     let mut one_at_a_time = true;
+    let mut hungry_compute = false;
     let mut outbox: Vec<v1::TileReport> = Vec::new();
     let mut released: Vec<v1::TileRef> = Vec::new();
     let mut backoff = Duration::from_millis(100);
@@ -323,7 +577,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
         let idle = if !outbox.is_empty() {
             // Reports left over from a poll that carried its byte budget.
             Duration::ZERO
-        } else if free_slots(held.len(), one_at_a_time, opts.max_leases) > 0
+        } else if free_slots(held.len(), hungry_compute, one_at_a_time, opts.max_leases) > 0
             && !draining.load(Ordering::Relaxed)
         {
             hungry.min(busy)
@@ -342,6 +596,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 while let Some(d) = next.take().or_else(|| done_rx.try_recv().ok()) {
                     match d {
                         Done::Report(r) => {
+                            collect_partial(&signals, &held, &mut outbox);
                             // Reports of leases revoked or forgotten meanwhile are stale.
                             if !held.iter().any(|h| Some(h) == r.lease.as_ref()) {
                                 continue;
@@ -355,6 +610,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                             held.retain(|h| *h != l);
                             released.push(l);
                         }
+                        Done::Hungry => hungry_compute = true,
                     }
                 }
             }
@@ -364,12 +620,13 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
         if draining_now && held.is_empty() && outbox.is_empty() {
             break;
         }
+        collect_partial(&signals, &held, &mut outbox);
         let req = v1::PollRequest {
             worker_id: reg.worker_id.clone(),
             free_slots: if draining_now {
                 0
             } else {
-                free_slots(held.len(), one_at_a_time, opts.max_leases) as u32
+                free_slots(held.len(), hungry_compute, one_at_a_time, opts.max_leases) as u32
             },
             held: held.clone(),
             reports: {
@@ -458,6 +715,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     };
                     tracing::debug!(lease = %tile, cells = lease.cells.len(), "leased");
                     one_at_a_time = spec.grid.mode == salient_grid::Mode::FastPss;
+                    hungry_compute = false;
                     held.push(tile);
                     if work_tx
                         .send(Work {
@@ -532,11 +790,15 @@ mod tests {
     #[test]
     fn fast_pss_leases_are_held_one_at_a_time() {
         // Fast PSS (and before any lease): one at a time, whatever --leases says.
-        assert_eq!(free_slots(0, true, 4), 1);
-        assert_eq!(free_slots(1, true, 4), 0);
+        assert_eq!(free_slots(0, false, true, 4), 1);
+        assert_eq!(free_slots(1, false, true, 4), 0);
         // Full mode: up to --leases.
-        assert_eq!(free_slots(0, false, 4), 4);
-        assert_eq!(free_slots(3, false, 4), 1);
-        assert_eq!(free_slots(5, false, 4), 0);
+        assert_eq!(free_slots(0, false, false, 4), 4);
+        assert_eq!(free_slots(3, false, false, 4), 1);
+        assert_eq!(free_slots(5, false, false, 4), 0);
+        // A hungry compute side gets one more, whatever is held.
+        assert_eq!(free_slots(1, true, true, 4), 1);
+        assert_eq!(free_slots(5, true, false, 4), 1);
+        assert_eq!(free_slots(0, true, false, 4), 4);
     }
 }
