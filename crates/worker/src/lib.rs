@@ -36,17 +36,26 @@ pub struct Options {
 }
 
 /// Leases to ask for: up to `max` held, but one at a time while the last lease was fast PSS
-/// (and before any lease came), and one more whenever the compute side is `hungry` (a lane
-/// idle with no leased cell waiting; the leases held then are only finishing their orbits). A
-/// fast-PSS lease is the next cells the coordinator's ledger needs; one asked for before a
-/// lane is free would take cells before the outcomes that may label them arrive, and measured
-/// slower (400×400 at t = 1e4 and 1e5: 0.94 and 3.9 s with one, 1.0–1.2 and 4.8 s with two).
-/// Full-mode tiles carry no such risk, and a second one keeps the threads busy across the
-/// round trip.
+/// (and before any lease came), and [`HUNGRY_LEASES`] more whenever the compute side is
+/// `hungry` (a lane idle with no leased cell waiting; the leases held then are only finishing
+/// their orbits). A fast-PSS lease is the next cells the coordinator's ledger needs; one asked
+/// for before a lane is free would take cells before the outcomes that may label them arrive,
+/// and measured slower (400×400 at t = 1e4 and 1e5: 0.94 and 3.9 s with one, 1.0–1.2 and
+/// 4.8 s with two). Full-mode tiles carry no such risk, and a second one keeps the threads
+/// busy across the round trip.
 fn free_slots(held: usize, hungry: bool, one_at_a_time: bool, max: usize) -> usize {
     let cap = if one_at_a_time { 1 } else { max };
-    cap.saturating_sub(held).max(usize::from(hungry))
+    let hungry = if hungry { HUNGRY_LEASES } else { 0 };
+    cap.saturating_sub(held).max(hungry)
 }
+
+/// Leases a hungry compute side asks for at once. A fast-PSS lease holds the wanted cells of
+/// one tile, often only a few of the batch it may hold, and every poll that carries reports
+/// waits for the coordinator's fsync (2–4 ms here) while the lanes run dry. 400×400 tm-sbab2c
+/// t = 1e4, 2 cores (2026-11-24), one against two leases: τ = 0.01 1 worker × 2 threads
+/// 5.9–6.1 vs 5.4–5.7 s, 2 × 1 7.1–8.0 vs 6.4–6.6 s; τ = 0.5 0.87–0.94 vs 0.77–0.79 s, 2 × 1
+/// 1.00–1.05 vs 0.91 s. Three dropped more and were no faster.
+const HUNGRY_LEASES: usize = 2;
 
 /// CPU time of this process (user + system) in seconds, from /proc on Linux; NaN elsewhere.
 pub fn process_cpu_seconds() -> f64 {
@@ -785,7 +794,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
 
 #[cfg(test)]
 mod tests {
-    use super::free_slots;
+    use super::{free_slots, HUNGRY_LEASES};
 
     #[test]
     fn fast_pss_leases_are_held_one_at_a_time() {
@@ -796,9 +805,9 @@ mod tests {
         assert_eq!(free_slots(0, false, false, 4), 4);
         assert_eq!(free_slots(3, false, false, 4), 1);
         assert_eq!(free_slots(5, false, false, 4), 0);
-        // A hungry compute side gets one more, whatever is held.
-        assert_eq!(free_slots(1, true, true, 4), 1);
-        assert_eq!(free_slots(5, true, false, 4), 1);
+        // A hungry compute side gets more, whatever is held.
+        assert_eq!(free_slots(1, true, true, 4), HUNGRY_LEASES);
+        assert_eq!(free_slots(5, true, false, 4), HUNGRY_LEASES);
         assert_eq!(free_slots(0, true, false, 4), 4);
     }
 }
