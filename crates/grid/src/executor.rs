@@ -1,5 +1,6 @@
-//! The tile executor: integrates a list of cells (a tile's unmarked cells, or the next cells of
-//! the embedded frontier) on the current rayon pool and turns each orbit into an [`Outcome`].
+//! The tile executor: integrates cells on the current rayon pool — a fixed list
+//! ([`integrate_cells`]), a worker's stream of leased cells ([`integrate_stream`]), or the cells
+//! the embedded ledger needs next ([`run_embedded`]) — and turns each orbit into an [`Outcome`].
 //! Tangent-map methods run [`lanes`] orbits at a time in the batched stepper; adaptive methods
 //! one orbit per task. An outcome depends only on its cell, never on scheduling, so any
 //! partition of the work gives the same bits.
@@ -282,69 +283,25 @@ struct CellsFeed<'a> {
     checkpoints: &'a [u64],
     cells: &'a [u32],
     cursor: &'a AtomicUsize,
-    claims: Option<&'a Claims>,
-    /// The cells whose orbits finished in this call, by any driver: their outcomes go out
-    /// with the rest, so a cell one of them crossed is as good as claimed (a driver running
-    /// one orbit at a time would otherwise integrate it after its crosser finished).
-    finished: &'a Mutex<Vec<u32>>,
     /// (position in `cells`, outcome) of the orbits this driver finished.
     done: Vec<(usize, Outcome)>,
 }
 
 impl BatchFeed<2> for CellsFeed<'_> {
     fn next(&mut self, _all_idle: bool) -> Feed<2> {
-        loop {
-            let i = self.cursor.fetch_add(1, Ordering::Relaxed);
-            let Some(&cell) = self.cells.get(i) else {
-                return Feed::Done;
-            };
-            if let Some(claims) = self.claims {
-                // Certain or probable to be labelled by another orbit: left without an outcome,
-                // so the ledger's owner integrates it later if it still needs it.
-                if claims.is_claimed(cell)
-                    || claims.running_crosser(self.grid, cell).is_some()
-                    || claims.crosser(cell).is_some_and(|by| {
-                        let from = self.grid.canonical()[by as usize];
-                        self.finished.lock().expect("finished").contains(&from)
-                    })
-                {
-                    continue;
-                }
-                claims.set_running(cell, true);
+        let i = self.cursor.fetch_add(1, Ordering::Relaxed);
+        match self.cells.get(i) {
+            Some(&cell) => {
+                let (q, p) = initial_point(self.grid, cell);
+                Feed::Orbit(i, q, p)
             }
-            let (q, p) = initial_point(self.grid, cell);
-            return Feed::Orbit(i, q, p);
+            None => Feed::Done,
         }
     }
     fn finished(&mut self, i: usize, r: OrbitResult<2>) {
-        if let Some(claims) = self.claims {
-            self.finished.lock().expect("finished").push(self.cells[i]);
-            claims.set_running(self.cells[i], false);
-        }
         let visited = crossed_cells(self.grid, &r.crossings);
         let o = outcome(self.cell_run, self.checkpoints, self.cells[i], &r, visited);
         self.done.push((i, o));
-    }
-    fn on_crossing(&mut self, i: usize, c: &Crossing<2>) {
-        let (Some(claims), Some(to)) = (self.claims, self.grid.cell_of(c.q[1], c.p[1])) else {
-            return;
-        };
-        let from = self.cells[i];
-        if claims.is_frontier(from) {
-            claims.claim_crossed(to);
-        }
-        claims.note_crossed(from, to);
-    }
-    fn cancelled(&mut self, i: usize) -> bool {
-        self.claims.is_some_and(|c| {
-            c.is_claimed(self.cells[i]) || c.probably_labelled(self.grid, self.cells[i])
-        })
-    }
-    fn abandoned(&mut self, i: usize, steps: u64) {
-        if let Some(claims) = self.claims {
-            claims.set_running(self.cells[i], false);
-            claims.record_abandoned(steps);
-        }
     }
 }
 
@@ -356,40 +313,15 @@ fn initial_point(grid: &Grid, cell: u32) -> ([f64; 2], [f64; 2]) {
 
 /// Integrates `cells` (compatible cells of `grid`) and returns their outcomes in the same order.
 pub fn integrate_cells(grid: &Grid, cell_run: &CellRun, mode: Mode, cells: &[u32]) -> Vec<Outcome> {
-    integrate_cells_with(grid, cell_run, mode, cells, None)
-}
-
-fn requests_for(cell_run: &CellRun, mode: Mode) -> Requests {
-    Requests {
-        crossings: mode == Mode::FastPss,
-        samples_per_decade: cell_run.checkpoints_per_decade,
-        ..Requests::default()
-    }
-}
-
-/// [`integrate_cells`], abandoning orbits the frontier orbit claims; abandoned cells get no
-/// outcome.
-pub fn integrate_cells_with(
-    grid: &Grid,
-    cell_run: &CellRun,
-    mode: Mode,
-    cells: &[u32],
-    claims: Option<&Claims>,
-) -> Vec<Outcome> {
-    let ham = HenonHeiles;
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
-    let map = match &cell_run.run.method {
-        Method::TangentMap(scheme) => Some(TangentMap::new(&ham, scheme, cell_run.config.tau)),
-        _ => None,
-    };
+    let map = tangent_map(cell_run);
     // A batched driver fills `lanes` orbits at a time; an adaptive one runs one or a few.
     let per_driver = map.as_ref().map_or_else(
         || adaptive_orbits_per_thread(&cell_run.run.method),
         |m| lanes(mode, m.tau()),
     );
     let cursor = AtomicUsize::new(0);
-    let finished = Mutex::new(Vec::new());
     let drivers = rayon::current_num_threads().min(cells.len().div_ceil(per_driver));
     let finished: Vec<(usize, Outcome)> = (0..drivers)
         .into_par_iter()
@@ -400,14 +332,9 @@ pub fn integrate_cells_with(
                 checkpoints: &checkpoints,
                 cells,
                 cursor: &cursor,
-                claims,
-                finished: &finished,
                 done: Vec::new(),
             };
-            match &map {
-                Some(map) => drive(map, &cell_run.config, &requests, mode, &mut feed),
-                None => drive_adaptive(grid, cell_run, &requests, &mut feed),
-            }
+            drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
             feed.done
         })
         .collect();
@@ -415,8 +342,42 @@ pub fn integrate_cells_with(
     for (i, o) in finished {
         out[i] = Some(o);
     }
-    // Abandoned orbits report nothing.
-    out.into_iter().flatten().collect()
+    out.into_iter()
+        .map(|o| o.expect("every listed cell is integrated"))
+        .collect()
+}
+
+fn requests_for(cell_run: &CellRun, mode: Mode) -> Requests {
+    Requests {
+        crossings: mode == Mode::FastPss,
+        samples_per_decade: cell_run.checkpoints_per_decade,
+        ..Requests::default()
+    }
+}
+
+/// The tangent map of a tangent-map method; `None` for the adaptive ones.
+fn tangent_map(cell_run: &CellRun) -> Option<TangentMap<'static, HenonHeiles>> {
+    match &cell_run.run.method {
+        Method::TangentMap(scheme) => {
+            Some(TangentMap::new(&HenonHeiles, scheme, cell_run.config.tau))
+        }
+        _ => None,
+    }
+}
+
+/// Runs `feed` to its end: in the batched stepper with `map`, else in the adaptive driver.
+fn drive_feed(
+    grid: &Grid,
+    cell_run: &CellRun,
+    mode: Mode,
+    map: Option<&TangentMap<'_, HenonHeiles>>,
+    requests: &Requests,
+    feed: &mut impl BatchFeed<2>,
+) {
+    match map {
+        Some(map) => drive(map, &cell_run.config, requests, mode, feed),
+        None => drive_adaptive(grid, cell_run, requests, feed),
+    }
 }
 
 /// Where [`integrate_stream`] gets its cells and sends their results: a worker's leases,
@@ -447,8 +408,9 @@ pub enum Take {
 /// The tile executor over a stream of cells: every thread of the current rayon pool drives
 /// its lanes from `source` until it says [`Take::Done`], so lanes freed by an orbit that ended
 /// take the next cell whatever lease it came in (a lease run on its own leaves lanes idle
-/// until its longest orbit ends). Claims as in [`integrate_cells_with`]: a cell claimed, or
-/// crossed by an orbit running here, is skipped, and orbits are abandoned when claimed.
+/// until its longest orbit ends). A cell claimed, crossed by an orbit running here, or crossed
+/// by one that finished here ([`CellSource::finished_here`]) is skipped without an outcome, and
+/// an orbit is abandoned once its cell is claimed or probably labelled.
 pub fn integrate_stream(
     grid: &Grid,
     cell_run: &CellRun,
@@ -456,13 +418,9 @@ pub fn integrate_stream(
     claims: &Claims,
     source: &impl CellSource,
 ) {
-    let ham = HenonHeiles;
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
-    let map = match &cell_run.run.method {
-        Method::TangentMap(scheme) => Some(TangentMap::new(&ham, scheme, cell_run.config.tau)),
-        _ => None,
-    };
+    let map = tangent_map(cell_run);
     rayon::broadcast(|_| {
         let mut feed = StreamFeed {
             grid,
@@ -471,10 +429,7 @@ pub fn integrate_stream(
             claims,
             source,
         };
-        match &map {
-            Some(map) => drive(map, &cell_run.config, &requests, mode, &mut feed),
-            None => drive_adaptive(grid, cell_run, &requests, &mut feed),
-        }
+        drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
     });
 }
 
