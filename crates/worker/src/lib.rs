@@ -450,30 +450,31 @@ impl CellSource for LeaseSource {
             return;
         };
         p.left -= 1;
-        let mut outcomes = Vec::new();
-        match &outcome {
+        let out = match &outcome {
             Some(o) => {
                 p.finished.insert(o.cell);
-                outcomes.push(v1::Outcome::from(o));
+                Some(v1::Outcome::from(o))
             }
-            None if steps > 0 => {
-                p.abandoned.0 += 1;
-                p.abandoned.1 += steps;
+            None => {
+                if steps > 0 {
+                    p.abandoned.0 += 1;
+                    p.abandoned.1 += steps;
+                }
+                None
             }
-            None => {}
-        }
+        };
         if p.left == 0 {
-            self.end_lease(&mut st, key, outcomes);
-        } else if !outcomes.is_empty() {
+            self.end_lease(&mut st, key, out.into_iter().collect());
+        } else if let Some(o) = out {
             // Out with the next poll (before the lease's finishing report, which is sent
             // after this and makes the network side collect these first).
             let lease = p.lease;
             let mut s = self.signals.lock().expect("signals");
             match s.partial.last_mut() {
-                Some(r) if r.lease == Some(lease) => r.outcomes.extend(outcomes),
+                Some(r) if r.lease == Some(lease) => r.outcomes.push(o),
                 _ => s.partial.push(v1::TileReport {
                     lease: Some(lease),
-                    outcomes,
+                    outcomes: vec![o],
                     finished: false,
                     cpu_ns: 0,
                     abandoned_orbits: 0,
