@@ -164,9 +164,21 @@ impl<B: Real> Real for DoubleDouble<B> {
             lo: B::splat(0.0),
         }
     }
+    /// self · a + b in one pass (16 floating-point operations against 28 for the product
+    /// and the accurate sum): the exact product's high part is added to b.hi error-free, and
+    /// everything below the first word — the product's rounding error, its cross terms and
+    /// b.lo — is summed in f64 and folded in once (the "sloppy" addition of Joldes, Muller &
+    /// Popescu, Alg. 5, with the product left unnormalised). Its error is at most a few u²
+    /// of |self · a| + |b| rather than of the result, so a sum that cancels keeps an
+    /// absolute, not a relative, 106-bit accuracy: what the Taylor recursions need, whose
+    /// Cauchy sums are almost all of a double-double step (1.7 → 1.0 µs for 4 lanes).
     #[inline(always)]
     fn mul_add(self, a: Self, b: Self) -> Self {
-        self * a + b
+        let (p, e) = two_prod(self.hi, a.hi);
+        let cross = self.hi.mul_add(a.lo, self.lo * a.hi);
+        let (s, t) = two_sum(p, b.hi);
+        let (hi, lo) = fast_two_sum(s, t + ((e + cross) + b.lo));
+        DoubleDouble { hi, lo }
     }
     #[inline(always)]
     fn ratio(num: f64, den: f64) -> Self {
@@ -193,5 +205,44 @@ mod tests {
         let q = DoubleDouble::from_f64(1.0).div(DoubleDouble::from_f64(7.0))
             * DoubleDouble::from_f64(7.0);
         assert!((q - DoubleDouble::from_f64(1.0)).to_f64().abs() < 1e-31);
+    }
+
+    #[test]
+    fn fused_multiply_add_is_accurate_to_a_few_u_squared_of_its_terms() {
+        // Against the product and the accurate sum (each within ~2u² of its exact value), on
+        // full double-words of mixed signs and magnitudes, sums that cancel included.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut uniform = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        let u = f64::EPSILON / 2.0;
+        let mut word = |scale: f64| {
+            let hi = uniform() * scale;
+            let (s, e) = fast_two_sum(hi, uniform() * hi.abs() * u);
+            DoubleDouble { hi: s, lo: e }
+        };
+        let mut worst = 0.0f64;
+        for i in 0..100_000 {
+            let (a, b) = (word(1.0), word(4.0));
+            let c = if i % 4 == 0 {
+                -(a * b) + word(1e-12)
+            } else {
+                word(2.0)
+            };
+            let fused = a.mul_add(b, c);
+            let reference = a * b + c;
+            let scale = (a * b).to_f64().abs() + c.to_f64().abs();
+            let err = (fused - reference).to_f64().abs() / (u * u * scale);
+            worst = worst.max(err);
+            assert!(
+                fused.lo.abs() <= fused.hi.abs() * u,
+                "not normalised: {fused:?}"
+            );
+        }
+        // Dropping the cross terms or b.lo would give errors of order u/u² = 2⁵³.
+        assert!(worst < 8.0, "worst error {worst} u² of |a·b| + |c|");
     }
 }
