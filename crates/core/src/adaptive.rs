@@ -13,7 +13,7 @@
 
 use crate::dop853::{Dense, Dop853, StepFailure};
 use crate::hamiltonian::Hamiltonian;
-use crate::indicators::{gali, in_band, norm2, sali};
+use crate::indicators::{gali, in_band, may_be_aligned, norm2, sali};
 use crate::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Sample, Status,
 };
@@ -272,7 +272,16 @@ impl<const K: usize> Books<'_, K> {
             });
         }
         let th = self.config.thresholds;
-        th.early_stop && sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1])) < th.chaotic
+        // The root-free screen first: SALI's three roots and two divisions at every multiple
+        // of τ were a tenth of a restart-protocol run at τ = 0.01.
+        th.early_stop
+            && may_be_aligned(
+                norm2(&y.dq[0], &y.dp[0]),
+                norm2(&y.dq[1], &y.dp[1]),
+                dot(&y.dq[0], &y.dq[1]) + dot(&y.dp[0], &y.dp[1]),
+                th.chaotic,
+            )
+            && sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1])) < th.chaotic
     }
 
     /// At a step end: escape, non-finite, energy. Returns the status that stops the orbit.
