@@ -40,6 +40,14 @@ fn two_prod<B: Real>(a: B, b: B) -> (B, B) {
     (p, a.mul_add(b, -p))
 }
 
+/// a · b as an exact high word and the sum of everything below it (TwoProd's error and the
+/// cross terms), not yet normalised: the product's first steps, shared by `*` and `mul_add`.
+#[inline(always)]
+fn product_words<B: Real>(a: DoubleDouble<B>, b: DoubleDouble<B>) -> (B, B) {
+    let (p, e) = two_prod(a.hi, b.hi);
+    (p, e + a.hi.mul_add(b.lo, a.lo * b.hi))
+}
+
 impl<B: Real> DoubleDouble<B> {
     /// The double-double `x` in every lane.
     #[inline(always)]
@@ -135,9 +143,8 @@ impl<B: Real> Mul for DoubleDouble<B> {
     type Output = Self;
     #[inline(always)]
     fn mul(self, b: Self) -> Self {
-        let (p, e) = two_prod(self.hi, b.hi);
-        let t = self.hi.mul_add(b.lo, self.lo * b.hi);
-        let (hi, lo) = fast_two_sum(p, e + t);
+        let (p, low) = product_words(self, b);
+        let (hi, lo) = fast_two_sum(p, low);
         DoubleDouble { hi, lo }
     }
 }
@@ -175,10 +182,9 @@ impl<B: Real> Real for DoubleDouble<B> {
     /// τ = 0.01: 515 → 367 ns per orbit-step).
     #[inline(always)]
     fn mul_add(self, a: Self, b: Self) -> Self {
-        let (p, e) = two_prod(self.hi, a.hi);
-        let cross = self.hi.mul_add(a.lo, self.lo * a.hi);
+        let (p, low) = product_words(self, a);
         let (s, t) = two_sum(p, b.hi);
-        let (hi, lo) = fast_two_sum(s, t + ((e + cross) + b.lo));
+        let (hi, lo) = fast_two_sum(s, t + (low + b.lo));
         DoubleDouble { hi, lo }
     }
     #[inline(always)]
