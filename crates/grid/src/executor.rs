@@ -134,6 +134,10 @@ pub struct Claims {
     crossed_by: Vec<AtomicU32>,
     /// Per cell, whether its orbit is running in some lane.
     running: Vec<AtomicBool>,
+    /// Per cell, whether a pending outcome before it in canonical order crossed it: the
+    /// ledger's [`Ledger::is_claimed`], mirrored at every [`Claims::sync`] so that running
+    /// orbits can ask without the lock (the embedded engine only).
+    pending_claimed: Vec<AtomicBool>,
     /// Bumped whenever an orbit stops running (finished or abandoned): only then can a cell
     /// that a search for work skipped become available, so an idle lane searches again only
     /// after a bump.
@@ -154,6 +158,7 @@ impl Claims {
                 .map(|_| AtomicU32::new(u32::MAX))
                 .collect(),
             running: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+            pending_claimed: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
             stopped: AtomicU64::new(0),
             abandoned: AtomicU64::new(0),
             abandoned_steps: AtomicU64::new(0),
@@ -187,6 +192,9 @@ impl Claims {
         for c in ledger.take_newly_labelled() {
             self.claimed[c as usize].store(true, Ordering::Relaxed);
         }
+        ledger.drain_claim_changes(|c, claimed| {
+            self.pending_claimed[c as usize].store(claimed, Ordering::Relaxed);
+        });
         self.frontier.store(ledger.frontier(), Ordering::Relaxed);
     }
 
@@ -236,11 +244,21 @@ impl Claims {
         self.is_running(from).then_some(from)
     }
 
-    /// Whether the orbit of `cell` is probably wasted: a running orbit before it crossed it,
-    /// and that orbit is itself neither claimed nor crossed by an earlier running one, so it
-    /// will very likely commit and label the cell. (If it does not, the cell is integrated
-    /// again later: abandoning costs the steps done so far, running on costs the rest.)
+    /// Whether the orbit of `cell` is probably wasted: a pending outcome before it crossed it,
+    /// or a running orbit before it did and that orbit is itself neither claimed nor crossed
+    /// by an earlier running one, so it will very likely commit and label the cell. (If it
+    /// does not, the cell is integrated again later: abandoning costs the steps done so far,
+    /// running on costs the rest.)
+    ///
+    /// The pending outcomes matter because [`Claims::crosser`] keeps only the earliest orbit
+    /// that crossed a cell while running: once that one has ended, a later regular orbit of
+    /// the same torus family that crossed the cell too is forgotten, and the cell's orbit
+    /// used to run to its end and be dropped (400×400, τ = 0.01: 351 regular orbits run in
+    /// full and dropped, 45 % of the dropped steps; 109 with this).
     fn probably_labelled(&self, grid: &Grid, cell: u32) -> bool {
+        if self.pending_claimed[cell as usize].load(Ordering::Relaxed) && !self.is_frontier(cell) {
+            return true;
+        }
         self.running_crosser(grid, cell).is_some_and(|from| {
             !self.claimed[from as usize].load(Ordering::Relaxed)
                 && self.running_crosser(grid, from).is_none()
@@ -1070,10 +1088,9 @@ pub fn run_embedded(
         return ledger;
     }
     let claims = Claims::new(grid);
-    let shared = Mutex::new(Shared {
-        ledger: Ledger::new(grid, mode),
-        progress,
-    });
+    let mut ledger = Ledger::new(grid, mode);
+    ledger.track_claim_changes();
+    let shared = Mutex::new(Shared { ledger, progress });
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
     let engine = Engine {

@@ -79,6 +79,9 @@ pub struct Ledger {
     /// Indexed by cell; an empty Vec does not allocate, and indexing beats hashing on the
     /// coordinator's hot path (measured: a third of its CPU was this bookkeeping).
     claimers: Vec<Vec<u32>>,
+    /// Cells whose [`Ledger::is_claimed`] may have changed since the last
+    /// [`Ledger::drain_claim_changes`]; kept only after [`Ledger::track_claim_changes`].
+    claim_changes: Option<Vec<u32>>,
 }
 
 impl Ledger {
@@ -103,6 +106,7 @@ impl Ledger {
             committed_steps: 0,
             newly_labelled: Vec::new(),
             claimers: vec![Vec::new(); cells],
+            claim_changes: None,
         }
     }
 
@@ -176,6 +180,25 @@ impl Ledger {
             && !self.is_claimed(cell)
     }
 
+    /// Keeps the cells whose claims change, for a reader that mirrors [`Ledger::is_claimed`]
+    /// outside the ledger's lock (the embedded engine's running orbits).
+    pub fn track_claim_changes(&mut self) {
+        self.claim_changes.get_or_insert_with(Vec::new);
+    }
+
+    /// Calls `f(cell, is_claimed(cell))` for every cell whose claims changed since the last
+    /// call (some more than once).
+    pub fn drain_claim_changes(&mut self, mut f: impl FnMut(u32, bool)) {
+        let Some(mut changes) = self.claim_changes.take() else {
+            return;
+        };
+        for &c in &changes {
+            f(c, self.is_claimed(c));
+        }
+        changes.clear();
+        self.claim_changes = Some(changes);
+    }
+
     /// The cells labelled since the last call.
     pub fn take_newly_labelled(&mut self) -> Vec<u32> {
         std::mem::take(&mut self.newly_labelled)
@@ -212,6 +235,9 @@ impl Ledger {
                 for &v in &o.visited {
                     if self.flags[v as usize] == COMPATIBLE {
                         self.claimers[v as usize].push(pos as u32);
+                        if let Some(changes) = &mut self.claim_changes {
+                            changes.push(v);
+                        }
                     }
                 }
             }
@@ -251,6 +277,9 @@ impl Ledger {
             let c = &mut self.claimers[*v as usize];
             if let Some(k) = c.iter().position(|&p| p as usize == pos) {
                 c.swap_remove(k);
+                if let Some(changes) = &mut self.claim_changes {
+                    changes.push(*v);
+                }
             }
         }
     }
@@ -397,7 +426,8 @@ mod tests {
 
         /// A scheduler that only integrates cells the ledger `wants` (any of them, with outcomes
         /// arriving in any order) never stalls and ends with the sequential labels: claims
-        /// from pending outcomes that are later dropped are released.
+        /// from pending outcomes that are later dropped are released. A mirror of the claims
+        /// kept from [`Ledger::drain_claim_changes`] equals [`Ledger::is_claimed`] throughout.
         #[test]
         fn integrating_only_wanted_cells_makes_progress_and_equals_the_rule(
             seed in any::<u64>(),
@@ -408,6 +438,8 @@ mod tests {
             let grid = Grid::new(0.125, n, n + 2, (-0.43, 0.67), (-0.5, 0.5), (tile, tile + 1));
             let want = sequential(&grid, Mode::FastPss, |c| fake(&grid, seed, c));
             let mut ledger = Ledger::new(&grid, Mode::FastPss);
+            ledger.track_claim_changes();
+            let mut mirror = vec![false; grid.cells()];
             let mut in_flight: Vec<Outcome> = Vec::new();
             let mut s = choices | 1;
             let mut rnd = move || { s ^= s << 13; s ^= s >> 7; s ^= s << 17; s };
@@ -428,6 +460,10 @@ mod tests {
                 } else {
                     let k = (rnd() % in_flight.len() as u64) as usize;
                     ledger.offer(in_flight.swap_remove(k));
+                    ledger.drain_claim_changes(|c, claimed| mirror[c as usize] = claimed);
+                    for c in grid.canonical() {
+                        prop_assert_eq!(mirror[*c as usize], ledger.is_claimed(*c), "cell {}", c);
+                    }
                 }
             }
             for c in 0..grid.cells() as u32 {
