@@ -11,7 +11,7 @@
 //! reaches the caller the moment its orbit ends.
 
 use crate::hamiltonian::Hamiltonian;
-use crate::indicators::{alignment_factor, in_band, sali};
+use crate::indicators::{alignment_factor, in_band, may_be_below, sali};
 use crate::orbit::{
     escape_radius2, initial_vectors, integrate, steps_to, OrbitConfig, OrbitResult, Requests,
     Tracker, ENERGY_CHECK_EVERY,
@@ -67,6 +67,22 @@ fn lane_sali<const N: usize, const K: usize, const L: usize>(
 ) -> f64 {
     let v = |a: &[Lanes<L>; N]| -> [f64; N] { core::array::from_fn(|i| a[i].0[l]) };
     sali((&v(&x.dq[0]), &v(&x.dp[0])), (&v(&x.dq[1]), &v(&x.dp[1])))
+}
+
+/// [`may_be_below`] on lane `l`'s first two deviation vectors: a few multiply-adds where the
+/// exact SALI takes three roots and two divisions in a chain.
+#[inline(always)]
+fn lane_may_be_below<const N: usize, const K: usize, const L: usize>(
+    x: &Phase<Lanes<L>, N, K>,
+    l: usize,
+    theta: f64,
+) -> bool {
+    let v = |a: &[Lanes<L>; N]| -> [f64; N] { core::array::from_fn(|i| a[i].0[l]) };
+    may_be_below(
+        (&v(&x.dq[0]), &v(&x.dp[0])),
+        (&v(&x.dq[1]), &v(&x.dp[1])),
+        theta,
+    )
 }
 
 struct Job<'h, H, const N: usize, const K: usize> {
@@ -512,7 +528,9 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
             // there on its way to the threshold: 29 of every 31 flagged steps of a 400×400
             // run. When that is the only flag, the exact SALI (the tracker's own function on
             // the same bits) settles it at a fraction of the scalar pass.
-            if only_aligned[l] && lane_sali(&st.x, l) >= chaotic {
+            if only_aligned[l]
+                && (!lane_may_be_below(&st.x, l, chaotic) || lane_sali(&st.x, l) >= chaotic)
+            {
                 continue;
             }
             let job = st.jobs[l].as_mut().expect("flagged lanes are active");

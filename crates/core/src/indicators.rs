@@ -58,6 +58,35 @@ pub fn may_be_aligned(a: f64, b: f64, c: f64, theta: f64) -> bool {
     c * c >= a * b * alignment_factor(theta)
 }
 
+/// Whether SALI of `w1` and `w2` may be below `theta`; `false` proves it is not. Where
+/// [`may_be_aligned`] passes everything within ~3e-7 of alignment (cos² is 1 to f64's
+/// precision there), this resolves angles down to ~1e-15: the sine of the angle between the
+/// vectors comes from their 2×2 minors (Lagrange's identity |w1|²|w2|² sin² =
+/// Σ_{i<j} (w1_i w2_j − w1_j w2_i)², a sum of squares, so nothing cancels between its terms),
+/// and SALI = 2 sin(θ'/2) ≥ sin θ' for the angle θ' ≤ π/2 between the two lines. The test asks
+/// for sin θ' ≥ 2·theta, which leaves room for the minors' rounding (~1e-15 of |w1||w2|);
+/// below `theta` = 1e-13 it passes everything.
+#[inline(always)]
+pub fn may_be_below<const N: usize>(
+    w1: (&[f64; N], &[f64; N]),
+    w2: (&[f64; N], &[f64; N]),
+    theta: f64,
+) -> bool {
+    if theta < 1e-13 {
+        return true;
+    }
+    let z1 = |i: usize| if i < N { w1.0[i] } else { w1.1[i - N] };
+    let z2 = |i: usize| if i < N { w2.0[i] } else { w2.1[i - N] };
+    let mut g = 0.0f64;
+    for i in 0..2 * N {
+        for j in i + 1..2 * N {
+            let m = z1(i).mul_add(z2(j), -(z1(j) * z2(i)));
+            g = m.mul_add(m, g);
+        }
+    }
+    g < 4.0 * theta * theta * norm2(w1.0, w1.1) * norm2(w2.0, w2.1)
+}
+
 /// The factor of [`may_be_aligned`], hoisted by callers that screen many vectors.
 #[inline(always)]
 pub fn alignment_factor(theta: f64) -> f64 {
@@ -155,6 +184,52 @@ mod tests {
         }
         // Orthogonal vectors are never flagged.
         assert!(!may_be_aligned(1.0, 1.0, 0.0, 1e-8));
+    }
+
+    /// The minor test never clears a pair whose SALI is below the threshold, and it clears
+    /// pairs 3e-8 to 2e-7 from alignment, which the cos² test passes on.
+    #[test]
+    fn minor_test_never_misses_a_small_sali_and_resolves_below_the_cosine_test() {
+        let mut s = 0x9e37_79b9_7f4a_7c15u64;
+        let mut rnd = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        let theta = 1e-8;
+        let (mut cleared, mut near, mut passed_by_cosine) = (0, 0, 0);
+        for k in 0..200_000 {
+            let a: [f64; 4] = core::array::from_fn(|_| rnd());
+            // b = ±scale·(a + angle·d): angles from 1e-12 to 1e-5 around the threshold.
+            let angle = 10f64.powf(-12.0 + 7.0 * (rnd() + 0.5));
+            let d: [f64; 4] = core::array::from_fn(|_| rnd());
+            let scale = if k % 2 == 0 { 3.7 } else { -0.02 };
+            let b: [f64; 4] = core::array::from_fn(|i| scale * (a[i] + angle * d[i]));
+            let (w1, w2) = (([a[0], a[1]], [a[2], a[3]]), ([b[0], b[1]], [b[2], b[3]]));
+            let exact = sali((&w1.0, &w1.1), (&w2.0, &w2.1));
+            let maybe = may_be_below((&w1.0, &w1.1), (&w2.0, &w2.1), theta);
+            if exact < theta {
+                assert!(maybe, "SALI {exact:e} cleared");
+            }
+            if !maybe {
+                cleared += 1;
+            }
+            let c: f64 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+            let (n2a, n2b): (f64, f64) = (norm2(&w1.0, &w1.1), norm2(&w2.0, &w2.1));
+            if (3e-8..2e-7).contains(&exact) {
+                near += 1;
+                if may_be_aligned(n2a, n2b, c, theta) {
+                    passed_by_cosine += 1;
+                }
+                assert!(!maybe, "SALI {exact:e} not cleared");
+            }
+        }
+        assert!(cleared > 50_000 && near > 1_000, "{cleared} {near}");
+        assert!(
+            passed_by_cosine * 10 > near * 9,
+            "{passed_by_cosine} of {near}"
+        );
     }
 
     #[test]
