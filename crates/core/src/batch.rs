@@ -59,30 +59,20 @@ fn set_lane<const N: usize, const K: usize, const L: usize>(
     }
 }
 
-/// SALI of lane `l`'s first two deviation vectors, exactly as the tracker computes it.
+/// Whether SALI of lane `l`'s first two deviation vectors is below `theta`, decided as the
+/// tracker decides it (the exact SALI on the same bits), after [`may_be_below`]'s screen: a
+/// few multiply-adds that clear most lanes where the exact SALI takes three roots and two
+/// divisions in a chain.
 #[inline(never)]
-fn lane_sali<const N: usize, const K: usize, const L: usize>(
-    x: &Phase<Lanes<L>, N, K>,
-    l: usize,
-) -> f64 {
-    let v = |a: &[Lanes<L>; N]| -> [f64; N] { core::array::from_fn(|i| a[i].0[l]) };
-    sali((&v(&x.dq[0]), &v(&x.dp[0])), (&v(&x.dq[1]), &v(&x.dp[1])))
-}
-
-/// [`may_be_below`] on lane `l`'s first two deviation vectors: a few multiply-adds where the
-/// exact SALI takes three roots and two divisions in a chain.
-#[inline(always)]
-fn lane_may_be_below<const N: usize, const K: usize, const L: usize>(
+fn lane_sali_below<const N: usize, const K: usize, const L: usize>(
     x: &Phase<Lanes<L>, N, K>,
     l: usize,
     theta: f64,
 ) -> bool {
     let v = |a: &[Lanes<L>; N]| -> [f64; N] { core::array::from_fn(|i| a[i].0[l]) };
-    may_be_below(
-        (&v(&x.dq[0]), &v(&x.dp[0])),
-        (&v(&x.dq[1]), &v(&x.dp[1])),
-        theta,
-    )
+    let (w1, w2) = ((v(&x.dq[0]), v(&x.dp[0])), (v(&x.dq[1]), v(&x.dp[1])));
+    may_be_below((&w1.0, &w1.1), (&w2.0, &w2.1), theta)
+        && sali((&w1.0, &w1.1), (&w2.0, &w2.1)) < theta
 }
 
 struct Job<'h, H, const N: usize, const K: usize> {
@@ -528,9 +518,7 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
             // there on its way to the threshold: 29 of every 31 flagged steps of a 400×400
             // run. When that is the only flag, the exact SALI (the tracker's own function on
             // the same bits) settles it at a fraction of the scalar pass.
-            if only_aligned[l]
-                && (!lane_may_be_below(&st.x, l, chaotic) || lane_sali(&st.x, l) >= chaotic)
-            {
+            if only_aligned[l] && !lane_sali_below(&st.x, l, chaotic) {
                 continue;
             }
             let job = st.jobs[l].as_mut().expect("flagged lanes are active");
