@@ -270,9 +270,11 @@ mode = "full"
 [sweep]
 method = ["tm-sbab2c"]
 tau = [0.5]
-t_final = [2e4]
+t_final = [2e5]
 "#,
     );
+    // Long enough (~1 s on two idle cores) that the coordinator dies mid-job: at t = 2e4 the
+    // whole job took 0.1 s and the first status already saw most of it done.
     let (mut c, url) = coordinator(d, "127.0.0.1:0", "coordinator-1.log");
     let mut workers: Vec<Proc> = (1..=2).map(|n| worker(d, &url, n)).collect();
     let out = client(&["submit", &spec, "--json"], &url);

@@ -23,6 +23,9 @@ use tonic::Status;
 const WINDOW_TILES_PER_WORKER: usize = 4;
 const WINDOW_TILES_MIN: usize = 64;
 
+/// Relayed outcomes one poll's reply carries at most (bytes), well below the message limit.
+const RELAY_BYTES: usize = 1 << 20;
+
 /// Timing of leases and polls.
 #[derive(Clone, Copy, Debug)]
 pub struct Config {
@@ -55,6 +58,8 @@ impl Default for Config {
 type TileKey = (u64, u32, u32);
 
 struct WorkerInfo {
+    /// Tells this worker's relayed outcomes from others'.
+    serial: u64,
     name: String,
     threads: u32,
     last_seen: Instant,
@@ -79,6 +84,10 @@ struct Tile {
 struct Run {
     grid: Grid,
     ledger: Ledger,
+    /// Fast PSS: every outcome received, with the serial of the worker that sent it
+    /// (`u64::MAX`: loaded from the store), relayed to the other workers of the run
+    /// ([`v1::Relay`]). Emptied when the run is done.
+    relay: Vec<(u64, v1::Outcome)>,
     /// Cells whose own outcome is in the store (the ledger forgets a dropped one, and a resent
     /// report must still change nothing).
     stored: Vec<bool>,
@@ -145,6 +154,7 @@ impl Run {
         let cell_run = spec.cell_run(index);
         Run {
             ledger: Ledger::new(&grid, spec.grid.mode),
+            relay: Vec::new(),
             stored: vec![false; grid.cells()],
             checkpoints: cell_run.checkpoint_steps().len(),
             adaptive_orbits_per_thread: match &cell_run.run.method {
@@ -251,6 +261,9 @@ impl Scheduler {
                     .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
                 run.stored[o.cell as usize] = true;
                 run.ledger.offer(o);
+                if run.ledger.mode() == salient_grid::Mode::FastPss {
+                    run.relay.push((u64::MAX, wire));
+                }
             }
             run.cpu_ns = self
                 .store
@@ -258,6 +271,9 @@ impl Scheduler {
                 .map_err(store_err)?
                 .cpu_ns;
             run.done = run.ledger.done();
+            if run.done {
+                run.relay = Vec::new();
+            }
             run.wall_s = count(index, "wall_ms") as f64 / 1e3;
             run.extra_dropped_orbits = count(index, "extra_dropped_orbits");
             run.extra_dropped_steps = count(index, "extra_dropped_steps");
@@ -331,6 +347,7 @@ impl Scheduler {
         self.workers.insert(
             id.clone(),
             WorkerInfo {
+                serial: self.next_worker - 1,
                 name,
                 threads: req.threads,
                 last_seen: Instant::now(),
@@ -464,16 +481,18 @@ impl Scheduler {
             }
             // Only outcomes for cells without one change anything; repeats are answered OK.
             let mut seen = HashSet::new();
-            let fresh: Vec<(u32, Vec<u8>, salient_grid::Outcome)> = r
+            let fresh: Vec<(&v1::Outcome, Vec<u8>, salient_grid::Outcome)> = r
                 .outcomes
                 .iter()
                 .zip(checked)
                 .filter(|(o, _)| !run.stored[o.cell as usize] && seen.insert(o.cell))
-                .map(|(o, checked)| (o.cell, o.encode_to_vec(), checked))
+                .map(|(o, checked)| (o, o.encode_to_vec(), checked))
                 .collect();
             if !fresh.is_empty() {
-                let blobs: Vec<(u32, &[u8])> =
-                    fresh.iter().map(|(c, b, _)| (*c, b.as_slice())).collect();
+                let blobs: Vec<(u32, &[u8])> = fresh
+                    .iter()
+                    .map(|(o, b, _)| (o.cell, b.as_slice()))
+                    .collect();
                 self.store
                     .commit_report(&Report {
                         job: lease.job,
@@ -486,9 +505,13 @@ impl Scheduler {
                     })
                     .map_err(store_err)?;
                 run.cpu_ns = run.cpu_ns.saturating_add(r.cpu_ns);
-                for (_, _, o) in fresh {
+                let serial = self.workers.get(worker).map_or(u64::MAX, |w| w.serial);
+                for (wire, _, o) in fresh {
                     run.stored[o.cell as usize] = true;
                     run.ledger.offer(o);
+                    if run.ledger.mode() == salient_grid::Mode::FastPss {
+                        run.relay.push((serial, wire.clone()));
+                    }
                 }
             }
             if r.finished && tile.lease.as_ref().is_some_and(|l| l.worker == worker) {
@@ -539,6 +562,7 @@ impl Scheduler {
                 .map_err(store_err)?;
             run.wall_s = wall_s;
             run.done = true;
+            run.relay = Vec::new();
             // Speculative leases of a finished run are no longer needed.
             for (t, tile) in run.tiles.iter_mut().enumerate() {
                 if let Some(l) = tile.lease.take() {
@@ -723,6 +747,54 @@ impl Scheduler {
         revoked
     }
 
+    /// Outcomes of the fast-PSS runs the worker holds leases of that other workers reported,
+    /// from the marks the worker sent on, up to [`RELAY_BYTES`].
+    fn relays(&self, worker: &str, marks: &[v1::RelayMark]) -> Vec<v1::Relay> {
+        let Some(w) = self.workers.get(worker) else {
+            return Vec::new();
+        };
+        let runs: BTreeSet<(u64, u32)> = w.leases.iter().map(|k| (k.0, k.1)).collect();
+        let mut out = Vec::new();
+        let mut bytes = 0;
+        for key in runs {
+            let Some(run) = self
+                .jobs
+                .get(&key.0)
+                .and_then(|j| j.runs.get(key.1 as usize))
+            else {
+                continue;
+            };
+            let mark = marks
+                .iter()
+                .find(|m| (m.job, m.run) == key)
+                .map_or(0, |m| m.next);
+            // A mark past the end is not this process's (a worker forgets its marks when it
+            // registers again): from the start.
+            let mut next = usize::try_from(mark)
+                .ok()
+                .filter(|&m| m <= run.relay.len())
+                .unwrap_or(0);
+            let mut outcomes = Vec::new();
+            while next < run.relay.len() && bytes < RELAY_BYTES {
+                let (from, o) = &run.relay[next];
+                next += 1;
+                if *from != w.serial {
+                    bytes += o.encoded_len();
+                    outcomes.push(o.clone());
+                }
+            }
+            if next as u64 != mark {
+                out.push(v1::Relay {
+                    job: key.0,
+                    run: key.1,
+                    outcomes,
+                    next: next as u64,
+                });
+            }
+        }
+        out
+    }
+
     /// Cells of the worker's leases that no longer need an orbit, not yet told.
     fn skips(&mut self, worker: &str) -> Vec<v1::Skip> {
         let keys: Vec<TileKey> = self
@@ -795,6 +867,7 @@ impl Scheduler {
             skips: self.skips(worker),
             acknowledged: replies.acknowledged,
             stale: replies.stale,
+            relays: self.relays(worker, &req.relayed),
         })
     }
 

@@ -138,6 +138,7 @@ fn drive(s: &mut Scheduler, job: u64, workers: usize, mut stop_after: Option<usi
                 held,
                 reports: report.into_iter().collect(),
                 draining: false,
+                ..Default::default()
             })
             .unwrap();
         for sk in reply.skips {
@@ -231,6 +232,72 @@ fn lease_one(s: &mut Scheduler, w: &str) -> v1::Lease {
     .unwrap()
     .leases
     .remove(0)
+}
+
+/// Fast PSS: a worker gets the outcomes other workers reported in the run it holds leases
+/// of, never its own, continuing from the mark it sends, so a reply it lost comes again.
+#[test]
+fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
+    let json = spec_json("fast-pss", r#""tm-sbab2c""#);
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    let (job, _) = s.submit(&json).unwrap();
+    let (a, b) = (register(&mut s), register(&mut s));
+    let lease_a = lease_one(&mut s, &a);
+    let lease_b = lease_one(&mut s, &b);
+    let poll = |s: &mut Scheduler, w: &str, held: &v1::Lease, reports, next: Option<u64>| {
+        s.poll(&v1::PollRequest {
+            worker_id: w.into(),
+            held: vec![held.lease.unwrap()],
+            reports,
+            relayed: next
+                .map(|next| v1::RelayMark { job, run: 0, next })
+                .into_iter()
+                .collect(),
+            ..Default::default()
+        })
+        .unwrap()
+    };
+    let relayed = |r: &v1::PollReply| -> Vec<(Vec<u32>, u64)> {
+        r.relays
+            .iter()
+            .map(|x| {
+                assert_eq!((x.job, x.run), (job, 0));
+                (x.outcomes.iter().map(|o| o.cell).collect(), x.next)
+            })
+            .collect()
+    };
+    // A's finished lease is relayed to B (which holds a lease of the run), not back to A.
+    let mut report_a = work(&lease_a, &HashSet::new());
+    report_a.finished = false;
+    let cells_a: Vec<u32> = report_a.outcomes.iter().map(|o| o.cell).collect();
+    assert!(!cells_a.is_empty());
+    let n = cells_a.len() as u64;
+    // A gets none of its own, only the mark past them.
+    let r = poll(&mut s, &a, &lease_a, vec![report_a], None);
+    assert_eq!(relayed(&r), vec![(vec![], n)]);
+    let r = poll(&mut s, &b, &lease_b, vec![], None);
+    assert_eq!(relayed(&r), vec![(cells_a.clone(), n)]);
+    // Nothing new after the mark; everything again from an older one (a lost reply).
+    assert!(relayed(&poll(&mut s, &b, &lease_b, vec![], Some(n))).is_empty());
+    assert_eq!(
+        relayed(&poll(&mut s, &b, &lease_b, vec![], Some(0))),
+        vec![(cells_a.clone(), n)]
+    );
+    // A mark past the end cannot be this coordinator's: everything again.
+    assert_eq!(
+        relayed(&poll(&mut s, &b, &lease_b, vec![], Some(u64::MAX))),
+        vec![(cells_a.clone(), n)]
+    );
+    // B's outcomes go to A, past A's own, which it skips but counts in the mark.
+    let mut report_b = work(&lease_b, &HashSet::new());
+    report_b.finished = false;
+    let cells_b: Vec<u32> = report_b.outcomes.iter().map(|o| o.cell).collect();
+    poll(&mut s, &b, &lease_b, vec![report_b], Some(n));
+    let total = n + cells_b.len() as u64;
+    assert_eq!(
+        relayed(&poll(&mut s, &a, &lease_a, vec![], Some(0))),
+        vec![(cells_b, total)]
+    );
 }
 
 #[test]

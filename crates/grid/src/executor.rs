@@ -127,7 +127,12 @@ fn outcome(
 pub struct Claims {
     frontier: AtomicUsize,
     position: Vec<u32>,
+    /// Certain: labelled by a commit, or crossed by the frontier orbit.
     claimed: Vec<AtomicBool>,
+    /// On the coordinator's word ([`Claims::claim`]): the cell no longer needed an orbit when
+    /// it said so, which a later lease of the cell withdraws ([`Claims::unclaim`]). Kept apart
+    /// from `claimed` so that withdrawing never undoes a certain claim.
+    told: Vec<AtomicBool>,
     /// Per cell, the lowest canonical position of a running orbit that crossed it: if that
     /// orbit commits, the cell is labelled by it, so integrating the cell now is probably
     /// wasted (a hint for choosing work, never a reason to abandon an orbit).
@@ -154,6 +159,7 @@ impl Claims {
                 .map(|c| grid.position(c).map_or(u32::MAX, |p| p as u32))
                 .collect(),
             claimed: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+            told: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
             crossed_by: (0..grid.cells())
                 .map(|_| AtomicU32::new(u32::MAX))
                 .collect(),
@@ -173,18 +179,25 @@ impl Claims {
         c
     }
 
-    /// Marks a cell as labelled by another orbit: its orbit, if running, is abandoned.
+    /// Marks a cell as labelled by another orbit on the coordinator's word: its orbit, if
+    /// running, is abandoned.
     pub fn claim(&self, cell: u32) {
-        if let Some(c) = self.claimed.get(cell as usize) {
+        if let Some(c) = self.told.get(cell as usize) {
             c.store(true, Ordering::Relaxed);
         }
     }
 
-    /// Withdraws a claim: the cell needs its orbit after all (its claimer was dropped).
+    /// Withdraws [`Claims::claim`]: the cell needs its orbit after all (its claimer was
+    /// dropped). Certain claims stay.
     pub fn unclaim(&self, cell: u32) {
-        if let Some(c) = self.claimed.get(cell as usize) {
+        if let Some(c) = self.told.get(cell as usize) {
             c.store(false, Ordering::Relaxed);
         }
+    }
+
+    fn claimed_any(&self, cell: u32) -> bool {
+        self.claimed[cell as usize].load(Ordering::Relaxed)
+            || self.told[cell as usize].load(Ordering::Relaxed)
     }
 
     /// Brings the claims up to date with the ledger (call with the ledger locked).
@@ -203,8 +216,11 @@ impl Claims {
     }
 
     /// Whether the cell is certain to be labelled by another orbit.
+    /// (The coordinator's word holds even at this side's frontier, which may lag behind the
+    /// coordinator's.)
     pub fn is_claimed(&self, cell: u32) -> bool {
-        self.claimed[cell as usize].load(Ordering::Relaxed) && !self.is_frontier(cell)
+        (self.claimed[cell as usize].load(Ordering::Relaxed) && !self.is_frontier(cell))
+            || self.told[cell as usize].load(Ordering::Relaxed)
     }
 
     /// The running orbit of cell `from` crossed `cell`.
@@ -256,13 +272,18 @@ impl Claims {
     /// used to run to its end and be dropped (400×400, τ = 0.01: 351 regular orbits run in
     /// full and dropped, 45 % of the dropped steps; 109 with this).
     fn probably_labelled(&self, grid: &Grid, cell: u32) -> bool {
-        if self.pending_claimed[cell as usize].load(Ordering::Relaxed) && !self.is_frontier(cell) {
+        if self.is_pending_claimed(cell) {
             return true;
         }
         self.running_crosser(grid, cell).is_some_and(|from| {
-            !self.claimed[from as usize].load(Ordering::Relaxed)
-                && self.running_crosser(grid, from).is_none()
+            !self.claimed_any(from) && self.running_crosser(grid, from).is_none()
         })
+    }
+
+    /// Whether a pending outcome before the cell in canonical order crossed it (see
+    /// [`Claims::probably_labelled`]).
+    fn is_pending_claimed(&self, cell: u32) -> bool {
+        self.pending_claimed[cell as usize].load(Ordering::Relaxed) && !self.is_frontier(cell)
     }
 
     /// Whether the cell's orbit runs in some lane.
@@ -290,6 +311,70 @@ impl Claims {
             self.abandoned.load(Ordering::Relaxed),
             self.abandoned_steps.load(Ordering::Relaxed),
         )
+    }
+}
+
+/// A worker's own ledger of a run: the outcomes of its orbits and those its coordinator relays
+/// from other workers, committed as the coordinator commits them, and the [`Claims`] its
+/// streams read. Every outcome is the same wherever its orbit ran, and a commit needs every
+/// earlier cell settled, so the commits of a ledger that has seen some of the outcomes are a
+/// prefix of the coordinator's: its labels are certain and its frontier is at or before the
+/// coordinator's (a cell there is the frontier, or committed with its own orbit), and the
+/// streams use them as the embedded engine does — the frontier orbit's crossings claim cells
+/// at once, and orbits crossed by a pending outcome are abandoned — instead of waiting for
+/// the coordinator's skips. Full mode labels no crossed cell, so there it keeps only the
+/// coordinator's claims.
+pub struct LocalLedger {
+    grid: Grid,
+    ledger: Option<Mutex<Ledger>>,
+    claims: Claims,
+    offers: AtomicU64,
+}
+
+impl LocalLedger {
+    pub fn new(grid: &Grid, mode: Mode) -> Self {
+        match mode {
+            Mode::FastPss => {
+                let mut ledger = Ledger::new(grid, mode);
+                ledger.track_claim_changes();
+                LocalLedger {
+                    grid: grid.clone(),
+                    ledger: Some(Mutex::new(ledger)),
+                    claims: Claims::new(grid),
+                    offers: AtomicU64::new(0),
+                }
+            }
+            Mode::Full => LocalLedger {
+                grid: grid.clone(),
+                ledger: None,
+                claims: Claims::external(grid),
+                offers: AtomicU64::new(0),
+            },
+        }
+    }
+
+    /// An outcome known here: this worker's, or one relayed by the coordinator (repeats are
+    /// harmless: the ledger drops them).
+    pub fn offer(&self, outcome: Outcome) {
+        if let Some(ledger) = &self.ledger {
+            let mut ledger = ledger.lock().expect("local ledger");
+            ledger.offer(outcome);
+            self.claims.sync(&mut ledger);
+            self.offers.fetch_add(1, Ordering::Release);
+        }
+    }
+
+    /// Outcomes offered so far (grows whenever the claims may have changed).
+    pub fn offers(&self) -> u64 {
+        self.offers.load(Ordering::Acquire)
+    }
+
+    pub fn grid(&self) -> &Grid {
+        &self.grid
+    }
+
+    pub fn claims(&self) -> &Claims {
+        &self.claims
     }
 }
 
@@ -401,15 +486,26 @@ fn drive_feed(
 /// Where [`integrate_stream`] gets its cells and sends their results: a worker's leases,
 /// which arrive while earlier ones still run.
 pub trait CellSource: Sync {
-    /// The next cell to integrate. `all_idle`: no lane of the asking driver has work (the
-    /// source may block a moment before it answers [`Take::Wait`]).
-    fn take(&self, all_idle: bool) -> Take;
+    /// The first waiting cell, in the source's order, that `judge` lets go; cells it drops
+    /// end at once without an outcome (`ended` with `None` and 0 steps), cells it defers stay
+    /// for a later call. `all_idle`: no lane of the asking driver has work (the source may
+    /// block a moment before it answers [`Take::Wait`]).
+    fn take(&self, all_idle: bool, judge: &dyn Fn(u32) -> Verdict) -> Take;
     /// The orbit of an entry [`Take::Cell`] gave ended: its outcome, or `None` when it was
     /// skipped (`steps` = 0) or abandoned after `steps` steps.
     fn ended(&self, entry: u64, outcome: Option<Outcome>, steps: u64);
-    /// Whether the orbit of `cell` finished here and its outcome is not known to the ledger's
-    /// owner yet: the cells it crossed are as good as claimed.
-    fn finished_here(&self, cell: u32) -> bool;
+}
+
+/// What a stream makes of a waiting cell.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    /// Integrate it now.
+    Go,
+    /// An orbit that runs or waits for commit here probably labels it: ask again later (as the
+    /// embedded engine takes other cells first).
+    Later,
+    /// Certain to be labelled by another orbit, or its own orbit runs or ran: no outcome.
+    Drop,
 }
 
 /// A [`CellSource`]'s answer.
@@ -426,14 +522,15 @@ pub enum Take {
 /// The tile executor over a stream of cells: every thread of the current rayon pool drives
 /// its lanes from `source` until it says [`Take::Done`], so lanes freed by an orbit that ended
 /// take the next cell whatever lease it came in (a lease run on its own leaves lanes idle
-/// until its longest orbit ends). A cell claimed, crossed by an orbit running here, or crossed
-/// by one that finished here ([`CellSource::finished_here`]) is skipped without an outcome, and
-/// an orbit is abandoned once its cell is claimed or probably labelled.
+/// until its longest orbit ends). Every outcome goes to `local` as its orbit ends. A cell
+/// claimed is skipped without an outcome; one crossed by an orbit running here or by a pending
+/// outcome of `local` waits while later cells go first; an orbit is abandoned once its cell is
+/// claimed or probably labelled.
 pub fn integrate_stream(
     grid: &Grid,
     cell_run: &CellRun,
     mode: Mode,
-    claims: &Claims,
+    local: &LocalLedger,
     source: &impl CellSource,
 ) {
     let requests = requests_for(cell_run, mode);
@@ -444,7 +541,8 @@ pub fn integrate_stream(
             grid,
             cell_run,
             checkpoints: &checkpoints,
-            claims,
+            local,
+            claims: local.claims(),
             source,
         };
         drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
@@ -456,33 +554,36 @@ struct StreamFeed<'a, S> {
     grid: &'a Grid,
     cell_run: &'a CellRun,
     checkpoints: &'a [u64],
+    local: &'a LocalLedger,
     claims: &'a Claims,
     source: &'a S,
 }
 
 impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
     fn next(&mut self, all_idle: bool) -> Feed<2> {
-        loop {
-            let (entry, cell) = match self.source.take(all_idle) {
-                Take::Cell(e) => (e, e as u32),
-                Take::Wait => return Feed::Wait,
-                Take::Done => return Feed::Done,
-            };
-            let claims = self.claims;
-            if claims.is_claimed(cell)
-                || claims.running_crosser(self.grid, cell).is_some()
-                || claims.crosser(cell).is_some_and(|by| {
-                    self.source
-                        .finished_here(self.grid.canonical()[by as usize])
-                })
+        let (claims, grid) = (self.claims, self.grid);
+        // Dropped cells are left without an outcome: the coordinator leases them again if it
+        // still needs them.
+        let judge = |cell: u32| {
+            if claims.is_claimed(cell) || claims.is_running(cell) {
+                Verdict::Drop
+            } else if claims.is_pending_claimed(cell)
+                || claims.running_crosser(grid, cell).is_some()
             {
-                // Left without an outcome: the coordinator leases it again if it still needs it.
-                self.source.ended(entry, None, 0);
-                continue;
+                Verdict::Later
+            } else {
+                Verdict::Go
             }
-            claims.set_running(cell, true);
-            let (q, p) = initial_point(self.grid, cell);
-            return Feed::Orbit(entry as usize, q, p);
+        };
+        match self.source.take(all_idle, &judge) {
+            Take::Cell(entry) => {
+                let cell = entry as u32;
+                claims.set_running(cell, true);
+                let (q, p) = initial_point(grid, cell);
+                Feed::Orbit(entry as usize, q, p)
+            }
+            Take::Wait => Feed::Wait,
+            Take::Done => Feed::Done,
         }
     }
     fn finished(&mut self, id: usize, r: OrbitResult<2>) {
@@ -490,6 +591,7 @@ impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
         self.claims.set_running(cell, false);
         let visited = crossed_cells(self.grid, &r.crossings);
         let o = outcome(self.cell_run, self.checkpoints, cell, &r, visited);
+        self.local.offer(o.clone());
         self.source.ended(id as u64, Some(o), r.steps);
     }
     fn on_crossing(&mut self, id: usize, c: &Crossing<2>) {

@@ -424,6 +424,48 @@ mod tests {
             prop_assert_eq!(ledger.dropped as usize, grid.compatible_count() - integrated.len());
         }
 
+        /// A worker's own ledger sees only some outcomes (its own and those relayed so far), in
+        /// any order. What it commits is a prefix of what the full ledger commits: every label
+        /// it sets is the full ledger's, its frontier is at or before the full one, and a cell
+        /// its claims hold certain ([`crate::executor::LocalLedger`]) is labelled in the end.
+        #[test]
+        fn a_ledger_of_some_outcomes_commits_a_prefix_of_the_full_one(
+            seed in any::<u64>(),
+            pick in any::<u64>(),
+            n in 4usize..20,
+            tile in 1usize..6,
+        ) {
+            let grid = Grid::new(0.125, n, n + 2, (-0.43, 0.67), (-0.5, 0.5), (tile, tile + 1));
+            let want = sequential(&grid, Mode::FastPss, |c| fake(&grid, seed, c));
+            let mut s = pick | 1;
+            let mut rnd = move || { s ^= s << 13; s ^= s >> 7; s ^= s << 17; s };
+            let mut some: Vec<u32> = grid.canonical().iter().copied().filter(|_| rnd() % 5 < 3).collect();
+            for i in (1..some.len()).rev() {
+                some.swap(i, (rnd() % (i as u64 + 1)) as usize);
+            }
+            let mut part = Ledger::new(&grid, Mode::FastPss);
+            let local = crate::executor::LocalLedger::new(&grid, Mode::FastPss);
+            for &c in &some {
+                part.offer(fake(&grid, seed, c));
+                local.offer(fake(&grid, seed, c));
+            }
+            let mut full = Ledger::new(&grid, Mode::FastPss);
+            for &c in grid.canonical() {
+                full.offer(fake(&grid, seed, c));
+            }
+            prop_assert!(part.frontier() <= full.frontier());
+            for c in 0..grid.cells() as u32 {
+                if let Some(l) = part.label(c) {
+                    prop_assert_eq!(Some(*l), want[c as usize]);
+                }
+                if local.claims().is_claimed(c) {
+                    prop_assert!(want[c as usize].is_some(), "cell {} claimed", c);
+                }
+                // And the claims know every label of the ledger they mirror.
+                prop_assert_eq!(part.is_labelled(c), local.claims().is_claimed(c), "cell {}", c);
+            }
+        }
+
         /// A scheduler that only integrates cells the ledger `wants` (any of them, with outcomes
         /// arriving in any order) never stalls and ends with the sequential labels: claims
         /// from pending outcomes that are later dropped are released. A mirror of the claims

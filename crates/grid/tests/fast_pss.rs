@@ -151,29 +151,49 @@ struct ListSource {
 }
 
 impl salient_grid::executor::CellSource for ListSource {
-    fn take(&self, _all_idle: bool) -> salient_grid::executor::Take {
-        use salient_grid::executor::Take;
-        match self.queue.lock().unwrap().pop_front() {
-            Some(e) => Take::Cell(e),
+    fn take(
+        &self,
+        all_idle: bool,
+        judge: &dyn Fn(u32) -> salient_grid::executor::Verdict,
+    ) -> salient_grid::executor::Take {
+        use salient_grid::executor::{Take, Verdict};
+        let mut queue = self.queue.lock().unwrap();
+        if queue.is_empty() {
+            return Take::Done;
+        }
+        let mut i = 0;
+        while i < queue.len() {
+            match judge(queue[i] as u32) {
+                Verdict::Go => return Take::Cell(queue.remove(i).unwrap()),
+                Verdict::Later => i += 1,
+                Verdict::Drop => {
+                    let e = queue.remove(i).unwrap();
+                    self.ended.lock().unwrap().push((e as u32, None));
+                }
+            }
+        }
+        // With every lane idle nothing here can settle the deferred cells: the first goes.
+        match queue.pop_front() {
+            Some(e) if all_idle => Take::Cell(e),
+            Some(e) => {
+                queue.push_front(e);
+                Take::Wait
+            }
             None => Take::Done,
         }
     }
     fn ended(&self, entry: u64, outcome: Option<salient_grid::Outcome>, _steps: u64) {
         self.ended.lock().unwrap().push((entry as u32, outcome));
     }
-    fn finished_here(&self, cell: u32) -> bool {
-        let ended = self.ended.lock().unwrap();
-        ended.iter().any(|(c, o)| *c == cell && o.is_some())
-    }
 }
 
-/// A worker's stream with external claims: every outcome it returns is bit for bit the plain
+/// A worker's stream with its own ledger: every outcome it returns is bit for bit the plain
 /// one, cells claimed beforehand get none, every cell ends exactly once, and cells that its
-/// own earlier orbits crossed are left for later (the cells cover a regular region, whose
-/// orbits cross their neighbours).
+/// own earlier orbits crossed wait and end without an orbit once those label them (the cells
+/// cover a regular region, whose orbits cross their neighbours).
 #[test]
 fn worker_streams_skip_claimed_and_crossed_cells_without_changing_outcomes() {
-    use salient_grid::executor::{integrate_stream, Claims};
+    use salient_grid::executor::{integrate_stream, LocalLedger};
     let grid = paper_grid(100);
     let mut dop = tm("sbab2c", 0.5, 2e3);
     dop.run = MethodRun {
@@ -189,9 +209,9 @@ fn worker_streams_skip_claimed_and_crossed_cells_without_changing_outcomes() {
         assert_eq!(plain.len(), cells.len());
         let claimed = [cells[5], cells[40]];
         for threads in [1, 2] {
-            let claims = Claims::external(&grid);
+            let local = LocalLedger::new(&grid, Mode::FastPss);
             for &c in &claimed {
-                claims.claim(c);
+                local.claims().claim(c);
             }
             let source = ListSource {
                 // Entries carry a serial above the cell, as a worker's do.
@@ -204,8 +224,7 @@ fn worker_streams_skip_claimed_and_crossed_cells_without_changing_outcomes() {
                 ),
                 ended: std::sync::Mutex::new(Vec::new()),
             };
-            pool(threads)
-                .install(|| integrate_stream(&grid, &run, Mode::FastPss, &claims, &source));
+            pool(threads).install(|| integrate_stream(&grid, &run, Mode::FastPss, &local, &source));
             let ended = source.ended.into_inner().unwrap();
             let mut seen: Vec<u32> = ended.iter().map(|(c, _)| *c).collect();
             seen.sort_unstable();

@@ -5,16 +5,16 @@
 //! outbox until acknowledged, so they survive a coordinator restart; on drain it finishes the
 //! leases it started, releases the ones not started, and deregisters.
 
-use salient_grid::executor::{integrate_stream, CellSource, Claims, Take};
+use salient_grid::executor::{integrate_stream, CellSource, LocalLedger, Take, Verdict};
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::Outcome;
 use salient_grid::{CellRun, Grid};
 use salient_proto::v1;
 use salient_proto::v1::worker_service_client::WorkerServiceClient;
-use salient_proto::{MAX_MESSAGE_BYTES, PROTOCOL_VERSION};
+use salient_proto::{outcome_from_wire, MAX_MESSAGE_BYTES, PROTOCOL_VERSION};
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::future::Future;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 use tokio::sync::mpsc;
@@ -146,7 +146,7 @@ struct Signals {
     /// By lease (job, run, tile, attempt).
     skips: HashMap<LeaseKey, HashSet<u32>>,
     revoked: HashSet<LeaseKey>,
-    claims: HashMap<(u64, u32), Arc<Claims>>,
+    ledgers: HashMap<(u64, u32), Arc<LocalLedger>>,
     /// Outcomes of leases still running, for the next poll: a report that woke the network
     /// side for every outcome made a poll (and a store commit) of each, and the coordinator
     /// shares the cores.
@@ -174,7 +174,7 @@ fn compute_thread(
 ) {
     // Built grids per (job, run), each tied to the spec it was built from (a coordinator on
     // another store reuses job ids), and few: a worker moves through runs in order.
-    type Built = (Arc<JobSpec>, Grid, CellRun, Arc<Claims>);
+    type Built = (Arc<JobSpec>, Grid, CellRun, Arc<LocalLedger>);
     let mut runs: HashMap<(u64, u32), Built> = HashMap::new();
     let mut next: Option<Work> = None;
     loop {
@@ -196,34 +196,35 @@ fn compute_thread(
             || (runs.len() >= MAX_BUILT_RUNS && !runs.contains_key(&(key.0, key.1)))
         {
             runs.clear();
-            signals.lock().expect("signals").claims.clear();
+            // The network side made the new run's ledger (it may hold relayed outcomes).
+            let keep = (key.0, key.1);
+            signals
+                .lock()
+                .expect("signals")
+                .ledgers
+                .retain(|k, _| *k == keep);
         }
-        let (spec, grid, cell_run, claims) = runs.entry((key.0, key.1)).or_insert_with(|| {
+        let (spec, grid, cell_run, local) = runs.entry((key.0, key.1)).or_insert_with(|| {
             let grid = w.spec.grid();
-            let claims = Arc::new(Claims::external(&grid));
-            let mut s = signals.lock().expect("signals");
-            s.claims.insert((key.0, key.1), claims.clone());
-            (
-                w.spec.clone(),
-                grid,
-                w.spec.cell_run(key.1 as usize),
-                claims,
-            )
+            let local = signals
+                .lock()
+                .expect("signals")
+                .ledgers
+                .entry((key.0, key.1))
+                .or_insert_with(|| Arc::new(LocalLedger::new(&grid, w.spec.grid.mode)))
+                .clone();
+            (w.spec.clone(), grid, w.spec.cell_run(key.1 as usize), local)
         });
-        let source = LeaseSource {
-            state: Mutex::new(SourceState::default()),
-            waiting: AtomicUsize::new(0),
-            hungry: AtomicBool::new(false),
-            more: Condvar::new(),
-            done: done.clone(),
-            signals: signals.clone(),
-            draining: draining.clone(),
-        };
-        source.add(w, claims);
+        let source = LeaseSource::new(
+            local.clone(),
+            done.clone(),
+            signals.clone(),
+            draining.clone(),
+        );
+        source.add(w, local);
         let mode = spec.grid.mode;
         std::thread::scope(|scope| {
-            scope
-                .spawn(|| pool.install(|| integrate_stream(grid, cell_run, mode, claims, &source)));
+            scope.spawn(|| pool.install(|| integrate_stream(grid, cell_run, mode, local, &source)));
             // Leases of the same run join the stream; another run's lease, or the network
             // side's end, closes it.
             loop {
@@ -235,7 +236,7 @@ fn compute_thread(
                         if (w.lease.job, w.lease.run) == (key.0, key.1)
                             && Arc::ptr_eq(&w.spec, spec) =>
                     {
-                        source.add(w, claims);
+                        source.add(w, local);
                     }
                     Ok(w) => {
                         next = Some(w);
@@ -257,6 +258,12 @@ struct LeaseSource {
     waiting: AtomicUsize,
     /// `Done::Hungry` went out since the last lease came.
     hungry: AtomicBool,
+    /// Bumped whenever a waiting cell's verdict may have changed (a lease came, an orbit
+    /// ended); `dry` holds its value plus the local ledger's offers at the last search that let
+    /// no cell go, so idle lanes, which ask every few steps, search again only after a change.
+    changes: AtomicU64,
+    local: Arc<LocalLedger>,
+    dry: AtomicU64,
     /// Signalled when cells arrive or the stream closes.
     more: Condvar,
     done: mpsc::UnboundedSender<Done>,
@@ -276,6 +283,8 @@ struct SourceState {
     closed: bool,
     /// Process CPU time when the last finishing report went out.
     cpu_mark: Option<f64>,
+    /// Entries handed out whose orbits have not ended.
+    running: usize,
 }
 
 struct LeaseProgress {
@@ -285,12 +294,31 @@ struct LeaseProgress {
     /// Entries handed out.
     started: usize,
     abandoned: (u64, u64),
-    /// Cells whose orbits finished in this lease.
-    finished: HashSet<u32>,
 }
 
 impl LeaseSource {
-    fn add(&self, w: Work, claims: &Claims) {
+    fn new(
+        local: Arc<LocalLedger>,
+        done: mpsc::UnboundedSender<Done>,
+        signals: Arc<Mutex<Signals>>,
+        draining: Arc<AtomicBool>,
+    ) -> Self {
+        LeaseSource {
+            state: Mutex::new(SourceState::default()),
+            waiting: AtomicUsize::new(0),
+            hungry: AtomicBool::new(false),
+            changes: AtomicU64::new(0),
+            local,
+            dry: AtomicU64::new(u64::MAX),
+            more: Condvar::new(),
+            done,
+            signals,
+            draining,
+        }
+    }
+
+    fn add(&self, w: Work, local: &LocalLedger) {
+        let claims = local.claims();
         let key = lease_key(&w.lease);
         {
             // The coordinator leases a cell only when it needs it: a claim left from an
@@ -315,6 +343,7 @@ impl LeaseSource {
             st.lease_of.insert(entry, key);
         }
         self.waiting.store(st.queue.len(), Ordering::Relaxed);
+        self.changes.fetch_add(1, Ordering::Release);
         st.leases.insert(
             key,
             LeaseProgress {
@@ -322,7 +351,6 @@ impl LeaseSource {
                 left: w.cells.len(),
                 started: 0,
                 abandoned: (0, 0),
-                finished: HashSet::new(),
             },
         );
         if w.cells.is_empty() {
@@ -395,8 +423,11 @@ impl LeaseSource {
 }
 
 impl CellSource for LeaseSource {
-    fn take(&self, all_idle: bool) -> Take {
-        if !all_idle && self.waiting.load(Ordering::Relaxed) == 0 {
+    fn take(&self, all_idle: bool, judge: &dyn Fn(u32) -> Verdict) -> Take {
+        if !all_idle
+            && (self.waiting.load(Ordering::Relaxed) == 0
+                || self.dry.load(Ordering::Relaxed) == self.version())
+        {
             self.say_hungry();
             return Take::Wait;
         }
@@ -404,45 +435,121 @@ impl CellSource for LeaseSource {
         if self.draining.load(Ordering::Relaxed) {
             self.release_unstarted(&mut st);
         }
+        let mut force = false;
         loop {
-            while let Some(entry) = st.queue.pop_front() {
-                if !st.closed {
-                    self.waiting.store(st.queue.len(), Ordering::Relaxed);
-                }
-                let key = st.lease_of[&entry];
-                if let Some(p) = st.leases.get_mut(&key) {
-                    p.started += 1;
-                }
-                // A revoked lease's cells are not started (its reports would be stale).
-                if self.signals.lock().expect("signals").revoked.contains(&key) {
-                    drop(st);
-                    self.ended(entry, None, 0);
-                    st = self.state.lock().expect("lease source");
-                    continue;
+            let seen = self.version();
+            let (pick, dropped) = self.search(&mut st, judge, force);
+            if !st.closed {
+                self.waiting.store(st.queue.len(), Ordering::Relaxed);
+            }
+            if let Some(entry) = pick {
+                st.running += 1;
+                drop(st);
+                for e in dropped {
+                    self.end_entry(e, None, 0);
                 }
                 return Take::Cell(entry);
             }
-            if st.closed {
+            if !dropped.is_empty() {
+                drop(st);
+                for e in dropped {
+                    self.end_entry(e, None, 0);
+                }
+                st = self.state.lock().expect("lease source");
+            }
+            if st.closed && st.queue.is_empty() {
                 return Take::Done;
             }
+            self.dry.store(seen, Ordering::Relaxed);
             self.say_hungry();
-            if !all_idle {
+            if !all_idle || force {
                 return Take::Wait;
             }
-            // Every lane is idle: wait for a lease rather than spin.
+            // Every lane is idle: wait for a lease or an ended orbit rather than spin. With no
+            // orbit running here, what the waiting cells wait for comes from elsewhere (the
+            // coordinator's skips, other workers' outcomes): after a wait, the first of them
+            // goes anyway, so the stream cannot stall.
             let (g, timeout) = self
                 .more
                 .wait_timeout(st, Duration::from_millis(5))
                 .expect("lease source");
             st = g;
-            if timeout.timed_out() && st.queue.is_empty() && !st.closed {
-                return Take::Wait;
+            if timeout.timed_out() {
+                if st.running > 0 {
+                    return Take::Wait;
+                }
+                force = true;
             }
         }
     }
 
     fn ended(&self, entry: u64, outcome: Option<Outcome>, steps: u64) {
+        self.state.lock().expect("lease source").running -= 1;
+        self.end_entry(entry, outcome, steps);
+    }
+}
+
+impl LeaseSource {
+    /// Grows whenever a waiting cell's verdict may have changed.
+    fn version(&self) -> u64 {
+        self.changes.load(Ordering::Acquire) + self.local.offers()
+    }
+
+    /// The first waiting entry that `judge` lets go (or, with `force`, the first it defers,
+    /// when none goes), taken out of the queue, and the entries it dropped (revoked leases'
+    /// among them: their reports would be stale).
+    fn search(
+        &self,
+        st: &mut SourceState,
+        judge: &dyn Fn(u32) -> Verdict,
+        force: bool,
+    ) -> (Option<u64>, Vec<u64>) {
+        let signals = self.signals.lock().expect("signals");
+        let mut dropped = Vec::new();
+        let mut first_later = None;
+        let mut i = 0;
+        while i < st.queue.len() {
+            let entry = st.queue[i];
+            let key = st.lease_of[&entry];
+            let verdict = if signals.revoked.contains(&key) {
+                Verdict::Drop
+            } else {
+                judge(entry as u32)
+            };
+            match verdict {
+                Verdict::Later => {
+                    first_later.get_or_insert(i);
+                    i += 1;
+                    continue;
+                }
+                Verdict::Go => {}
+                Verdict::Drop => dropped.push(entry),
+            }
+            st.queue.remove(i);
+            if let Some(p) = st.leases.get_mut(&key) {
+                p.started += 1;
+            }
+            if verdict == Verdict::Go {
+                return (Some(entry), dropped);
+            }
+        }
+        let forced = first_later
+            .filter(|_| force)
+            .and_then(|i| st.queue.remove(i));
+        if let Some(entry) = forced {
+            if let Some(p) = st.leases.get_mut(&st.lease_of[&entry]) {
+                p.started += 1;
+            }
+        }
+        (forced, dropped)
+    }
+
+    /// An entry's end: its outcome to the next poll, and the lease's finishing report once
+    /// every entry of it ended.
+    fn end_entry(&self, entry: u64, outcome: Option<Outcome>, steps: u64) {
         let mut st = self.state.lock().expect("lease source");
+        self.changes.fetch_add(1, Ordering::Release);
+        self.more.notify_all();
         let Some(key) = st.lease_of.remove(&entry) else {
             return;
         };
@@ -451,10 +558,7 @@ impl CellSource for LeaseSource {
         };
         p.left -= 1;
         let out = match &outcome {
-            Some(o) => {
-                p.finished.insert(o.cell);
-                Some(v1::Outcome::from(o))
-            }
+            Some(o) => Some(v1::Outcome::from(o)),
             None => {
                 if steps > 0 {
                     p.abandoned.0 += 1;
@@ -483,10 +587,19 @@ impl CellSource for LeaseSource {
             }
         }
     }
+}
 
-    fn finished_here(&self, cell: u32) -> bool {
-        let st = self.state.lock().expect("lease source");
-        st.leases.values().any(|p| p.finished.contains(&cell))
+/// Offers another worker's outcomes, relayed by the coordinator, to the run's own ledger; one
+/// that does not fit the grid is logged and left out (the relay is advice, never a reason to
+/// stop).
+fn apply_relay(local: &LocalLedger, relay: &v1::Relay) {
+    for o in &relay.outcomes {
+        match outcome_from_wire(o, local.grid(), o.checkpoints.len()) {
+            Ok(o) => local.offer(o),
+            Err(e) => {
+                tracing::warn!(job = relay.job, run = relay.run, error = %e, "relayed outcome left out");
+            }
+        }
     }
 }
 
@@ -576,6 +689,8 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
     let mut hungry_compute = false;
     let mut outbox: Vec<v1::TileReport> = Vec::new();
     let mut released: Vec<v1::TileRef> = Vec::new();
+    // Per fast-PSS run: how far this worker got in the coordinator's relayed outcomes.
+    let mut relay_marks: HashMap<(u64, u32), u64> = HashMap::new();
     let mut backoff = Duration::from_millis(100);
     tokio::pin!(drain);
     let mut drain_seen = false;
@@ -631,6 +746,11 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
             break;
         }
         collect_partial(&signals, &held, &mut outbox);
+        {
+            // A run's ledger made afresh starts over.
+            let s = signals.lock().expect("signals");
+            relay_marks.retain(|k, _| s.ledgers.contains_key(k));
+        }
         let req = v1::PollRequest {
             worker_id: reg.worker_id.clone(),
             free_slots: if draining_now {
@@ -653,6 +773,10 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     .collect::<Vec<_>>()
             },
             draining: draining_now,
+            relayed: relay_marks
+                .iter()
+                .map(|(&(job, run), &next)| v1::RelayMark { job, run, next })
+                .collect(),
         };
         // The reply answers the reports this poll carried: the first `sent` of the outbox.
         let sent = req.reports.len();
@@ -681,8 +805,8 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     let mut s = signals.lock().expect("signals");
                     for skip in reply.skips {
                         if let Some(l) = skip.lease {
-                            if let Some(c) = s.claims.get(&(l.job, l.run)) {
-                                skip.cells.iter().for_each(|&cell| c.claim(cell));
+                            if let Some(c) = s.ledgers.get(&(l.job, l.run)) {
+                                skip.cells.iter().for_each(|&cell| c.claims().claim(cell));
                             }
                             s.skips
                                 .entry((l.job, l.run, l.tile, l.attempt))
@@ -694,6 +818,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                         s.revoked.insert((r.job, r.run, r.tile, r.attempt));
                     }
                 }
+
                 for r in &reply.revoked {
                     tracing::info!(lease = %r, "lease revoked");
                     held.retain(|h| h != r);
@@ -724,6 +849,18 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                         },
                     };
                     tracing::debug!(lease = %tile, cells = lease.cells.len(), "leased");
+                    if spec.grid.mode == salient_grid::Mode::FastPss {
+                        // Made here, not by the compute side, so that the outcomes relayed in
+                        // this reply find it.
+                        signals
+                            .lock()
+                            .expect("signals")
+                            .ledgers
+                            .entry((tile.job, tile.run))
+                            .or_insert_with(|| {
+                                Arc::new(LocalLedger::new(&spec.grid(), spec.grid.mode))
+                            });
+                    }
                     one_at_a_time = spec.grid.mode == salient_grid::Mode::FastPss;
                     hungry_compute = false;
                     held.push(tile);
@@ -738,12 +875,23 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                         return Err("the compute thread stopped".into());
                     }
                 }
+                if !reply.relays.is_empty() {
+                    let s = signals.lock().expect("signals");
+                    for relay in &reply.relays {
+                        if let Some(local) = s.ledgers.get(&(relay.job, relay.run)) {
+                            apply_relay(local, relay);
+                            relay_marks.insert((relay.job, relay.run), relay.next);
+                        }
+                    }
+                }
             }
             Err(e) if e.code() == Code::NotFound => {
                 // The coordinator restarted and forgot us: register again, keep the outbox
                 // and the leases; the next poll resends and re-adopts them.
                 tracing::warn!(error = %e.message(), "coordinator does not know this worker");
                 let again = register(&mut client, &opts).await?;
+                // The marks counted the old process's relays.
+                relay_marks.clear();
                 if again.coordinator_id != reg.coordinator_id {
                     // Another store: its job ids, tiles and attempts are not the ones we hold.
                     tracing::warn!(
@@ -757,6 +905,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     }
                     outbox.clear();
                     specs.clear();
+                    s.ledgers.clear();
                 }
                 reg = again;
             }
@@ -795,7 +944,80 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
 
 #[cfg(test)]
 mod tests {
-    use super::{free_slots, HUNGRY_LEASES};
+    use super::*;
+
+    /// A stream's source hands out the first cell its judge lets go, ends the dropped ones
+    /// without an outcome, keeps the deferred ones, and lets a deferred one go only when every
+    /// lane is idle and no orbit runs (nothing here could settle it).
+    #[test]
+    fn the_source_defers_drops_and_never_stalls() {
+        let json = r#"{"name": "t", "system": {"kind": "henon-heiles", "energy": 0.125},
+            "grid": {"cells": [14, 12], "tile": [14, 12], "mode": "fast-pss"},
+            "sweep": {"method": ["tm-sbab2c"], "tau": [0.5], "t_final": [10.0]}}"#;
+        let spec = Arc::new(spec::parse(json, true).unwrap());
+        let grid = spec.grid();
+        let cells: Vec<u32> = grid.canonical()[..3].to_vec();
+        let (tx, mut rx) = mpsc::unbounded_channel();
+        let local = Arc::new(LocalLedger::new(&grid, spec.grid.mode));
+        let source = LeaseSource::new(
+            local.clone(),
+            tx,
+            Arc::new(Mutex::new(Signals::default())),
+            Arc::new(AtomicBool::new(false)),
+        );
+        let lease = v1::TileRef {
+            job: 1,
+            run: 0,
+            tile: 0,
+            attempt: 1,
+        };
+        source.add(
+            Work {
+                lease,
+                spec,
+                cells: cells.clone(),
+            },
+            &local,
+        );
+        let (later, drop, go) = (cells[0], cells[1], cells[2]);
+        let judge = |c: u32| match c {
+            c if c == later => Verdict::Later,
+            c if c == drop => Verdict::Drop,
+            _ => Verdict::Go,
+        };
+        let taken = |t: Take| match t {
+            Take::Cell(e) => Some(e as u32),
+            _ => None,
+        };
+        let go_entry = match source.take(false, &judge) {
+            Take::Cell(e) => e,
+            _ => panic!("the cell the judge lets go is taken"),
+        };
+        assert_eq!(go_entry as u32, go);
+        // Nothing else goes while an orbit runs, idle or not.
+        assert_eq!(taken(source.take(false, &judge)), None);
+        assert_eq!(taken(source.take(true, &judge)), None);
+        source.ended(go_entry, None, 5);
+        // No orbit runs now: with every lane idle the deferred cell goes after a wait.
+        assert_eq!(taken(source.take(false, &judge)), None);
+        let later_entry = match source.take(true, &judge) {
+            Take::Cell(e) => e,
+            _ => panic!("a deferred cell goes when nothing runs"),
+        };
+        assert_eq!(later_entry as u32, later);
+        let mut report = || {
+            std::iter::from_fn(|| rx.try_recv().ok()).find_map(|d| match d {
+                Done::Report(r) => Some(r),
+                _ => None,
+            })
+        };
+        assert!(report().is_none(), "the lease has not ended yet");
+        source.ended(later_entry, None, 7);
+        // Every cell ended (one dropped, two abandoned): the lease's finishing report.
+        let r = report().expect("a finishing report");
+        assert!(r.finished && r.outcomes.is_empty());
+        assert_eq!((r.abandoned_orbits, r.abandoned_steps), (2, 12));
+    }
 
     #[test]
     fn fast_pss_leases_are_held_one_at_a_time() {
