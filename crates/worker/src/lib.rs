@@ -140,13 +140,14 @@ enum Done {
 }
 
 /// Cells to skip and leases revoked, written by the network side, read by the compute side;
-/// and per run the claims through which a skip abandons an orbit already running.
+/// and per run its own ledger, fed relayed outcomes by the network side, whose claims a skip
+/// abandons an orbit already running through.
 #[derive(Default)]
 struct Signals {
     /// By lease (job, run, tile, attempt).
     skips: HashMap<LeaseKey, HashSet<u32>>,
     revoked: HashSet<LeaseKey>,
-    ledgers: HashMap<(u64, u32), Arc<LocalLedger>>,
+    ledgers: HashMap<(u64, u32), RunLedger>,
     /// Outcomes of leases still running, for the next poll: a report that woke the network
     /// side for every outcome made a poll (and a store commit) of each, and the coordinator
     /// shares the cores.
@@ -154,6 +155,22 @@ struct Signals {
 }
 
 type LeaseKey = (u64, u32, u32, u32);
+
+/// A fast-PSS run's own ledger and how far it got in the coordinator's relayed outcomes (its
+/// `RelayMark`): kept together so that a ledger made afresh always starts from the beginning.
+struct RunLedger {
+    local: Arc<LocalLedger>,
+    relayed: u64,
+}
+
+impl RunLedger {
+    fn new(spec: &JobSpec, grid: &Grid) -> Self {
+        RunLedger {
+            local: Arc::new(LocalLedger::new(grid, spec.grid.mode)),
+            relayed: 0,
+        }
+    }
+}
 
 fn lease_key(l: &v1::TileRef) -> LeaseKey {
     (l.job, l.run, l.tile, l.attempt)
@@ -211,7 +228,8 @@ fn compute_thread(
                 .expect("signals")
                 .ledgers
                 .entry((key.0, key.1))
-                .or_insert_with(|| Arc::new(LocalLedger::new(&grid, w.spec.grid.mode)))
+                .or_insert_with(|| RunLedger::new(&w.spec, &grid))
+                .local
                 .clone();
             (w.spec.clone(), grid, w.spec.cell_run(key.1 as usize), local)
         });
@@ -221,7 +239,7 @@ fn compute_thread(
             signals.clone(),
             draining.clone(),
         );
-        source.add(w, local);
+        source.add(w);
         let mode = spec.grid.mode;
         std::thread::scope(|scope| {
             scope.spawn(|| pool.install(|| integrate_stream(grid, cell_run, mode, local, &source)));
@@ -236,7 +254,7 @@ fn compute_thread(
                         if (w.lease.job, w.lease.run) == (key.0, key.1)
                             && Arc::ptr_eq(&w.spec, spec) =>
                     {
-                        source.add(w, local);
+                        source.add(w);
                     }
                     Ok(w) => {
                         next = Some(w);
@@ -317,8 +335,8 @@ impl LeaseSource {
         }
     }
 
-    fn add(&self, w: Work, local: &LocalLedger) {
-        let claims = local.claims();
+    fn add(&self, w: Work) {
+        let claims = self.local.claims();
         let key = lease_key(&w.lease);
         {
             // The coordinator leases a cell only when it needs it: a claim left from an
@@ -689,8 +707,6 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
     let mut hungry_compute = false;
     let mut outbox: Vec<v1::TileReport> = Vec::new();
     let mut released: Vec<v1::TileRef> = Vec::new();
-    // Per fast-PSS run: how far this worker got in the coordinator's relayed outcomes.
-    let mut relay_marks: HashMap<(u64, u32), u64> = HashMap::new();
     let mut backoff = Duration::from_millis(100);
     tokio::pin!(drain);
     let mut drain_seen = false;
@@ -746,11 +762,6 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
             break;
         }
         collect_partial(&signals, &held, &mut outbox);
-        {
-            // A run's ledger made afresh starts over.
-            let s = signals.lock().expect("signals");
-            relay_marks.retain(|k, _| s.ledgers.contains_key(k));
-        }
         let req = v1::PollRequest {
             worker_id: reg.worker_id.clone(),
             free_slots: if draining_now {
@@ -773,9 +784,16 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     .collect::<Vec<_>>()
             },
             draining: draining_now,
-            relayed: relay_marks
+            relayed: signals
+                .lock()
+                .expect("signals")
+                .ledgers
                 .iter()
-                .map(|(&(job, run), &next)| v1::RelayMark { job, run, next })
+                .map(|(&(job, run), r)| v1::RelayMark {
+                    job,
+                    run,
+                    next: r.relayed,
+                })
                 .collect(),
         };
         // The reply answers the reports this poll carried: the first `sent` of the outbox.
@@ -805,8 +823,9 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     let mut s = signals.lock().expect("signals");
                     for skip in reply.skips {
                         if let Some(l) = skip.lease {
-                            if let Some(c) = s.ledgers.get(&(l.job, l.run)) {
-                                skip.cells.iter().for_each(|&cell| c.claims().claim(cell));
+                            if let Some(r) = s.ledgers.get(&(l.job, l.run)) {
+                                let claims = r.local.claims();
+                                skip.cells.iter().for_each(|&cell| claims.claim(cell));
                             }
                             s.skips
                                 .entry((l.job, l.run, l.tile, l.attempt))
@@ -857,9 +876,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                             .expect("signals")
                             .ledgers
                             .entry((tile.job, tile.run))
-                            .or_insert_with(|| {
-                                Arc::new(LocalLedger::new(&spec.grid(), spec.grid.mode))
-                            });
+                            .or_insert_with(|| RunLedger::new(&spec, &spec.grid()));
                     }
                     one_at_a_time = spec.grid.mode == salient_grid::Mode::FastPss;
                     hungry_compute = false;
@@ -876,11 +893,11 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     }
                 }
                 if !reply.relays.is_empty() {
-                    let s = signals.lock().expect("signals");
+                    let mut s = signals.lock().expect("signals");
                     for relay in &reply.relays {
-                        if let Some(local) = s.ledgers.get(&(relay.job, relay.run)) {
-                            apply_relay(local, relay);
-                            relay_marks.insert((relay.job, relay.run), relay.next);
+                        if let Some(r) = s.ledgers.get_mut(&(relay.job, relay.run)) {
+                            apply_relay(&r.local, relay);
+                            r.relayed = relay.next;
                         }
                     }
                 }
@@ -891,7 +908,9 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 tracing::warn!(error = %e.message(), "coordinator does not know this worker");
                 let again = register(&mut client, &opts).await?;
                 // The marks counted the old process's relays.
-                relay_marks.clear();
+                for r in signals.lock().expect("signals").ledgers.values_mut() {
+                    r.relayed = 0;
+                }
                 if again.coordinator_id != reg.coordinator_id {
                     // Another store: its job ids, tiles and attempts are not the ones we hold.
                     tracing::warn!(
@@ -971,14 +990,11 @@ mod tests {
             tile: 0,
             attempt: 1,
         };
-        source.add(
-            Work {
-                lease,
-                spec,
-                cells: cells.clone(),
-            },
-            &local,
-        );
+        source.add(Work {
+            lease,
+            spec,
+            cells: cells.clone(),
+        });
         let (later, drop, go) = (cells[0], cells[1], cells[2]);
         let judge = |c: u32| match c {
             c if c == later => Verdict::Later,
