@@ -79,6 +79,10 @@ struct Tile {
     /// The latest attempt issued (0: never leased).
     attempt: u32,
     lease: Option<ActiveLease>,
+    /// The run ledger's [`Ledger::reopenings`] when the tile was last found without wanted
+    /// cells: while it is unchanged the tile has none, and the lease search passes it by
+    /// (scanning the window's cells on every poll was a quarter of the coordinator's CPU).
+    drained_at: Option<u64>,
 }
 
 struct Run {
@@ -597,12 +601,13 @@ impl Scheduler {
 
     /// The next tile with cells that need an orbit, FIFO over jobs and in order over runs and
     /// tiles (from each run's frontier on, a bounded window), and those cells.
-    fn next_tile(&self) -> Option<(TileKey, Vec<u32>)> {
-        for job in self.jobs.values() {
+    fn next_tile(&mut self) -> Option<(TileKey, Vec<u32>)> {
+        let workers = self.workers.len();
+        for job in self.jobs.values_mut() {
             if job.state.is_terminal() {
                 continue;
             }
-            for (r, run) in job.runs.iter().enumerate() {
+            for (r, run) in job.runs.iter_mut().enumerate() {
                 if run.done {
                     continue;
                 }
@@ -616,17 +621,19 @@ impl Scheduler {
                 // grid on every poll of an idle worker cost the coordinator more CPU than the
                 // leases themselves. (Later runs of the job are scanned next: their frontier
                 // is certain work.)
-                let ahead =
-                    (WINDOW_TILES_PER_WORKER * self.workers.len().max(1)).max(WINDOW_TILES_MIN);
+                let ahead = (WINDOW_TILES_PER_WORKER * workers.max(1)).max(WINDOW_TILES_MIN);
                 let last = (first + 1 + ahead).min(run.tiles.len());
+                let reopenings = run.ledger.reopenings();
                 for t in first..last {
-                    if run.tiles[t].lease.is_some() {
+                    let tile = &run.tiles[t];
+                    if tile.lease.is_some() || tile.drained_at == Some(reopenings) {
                         continue;
                     }
                     let cells = run.wanted(t);
                     if !cells.is_empty() {
                         return Some(((job.id, r as u32, t as u32), cells));
                     }
+                    run.tiles[t].drained_at = Some(reopenings);
                 }
             }
         }
