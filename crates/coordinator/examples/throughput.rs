@@ -2,12 +2,13 @@
 //! scheduler (validation, SQLite commit with synchronous=FULL, ledger) and CPU per outcome,
 //! without networking or integration.
 //!
-//! cargo run --release -p salient-coordinator --example throughput -- [full|fast-pss] [visited] [group] [jobs]
+//! cargo run --release -p salient-coordinator --example throughput -- [full|fast-pss] [visited] [group] [jobs] [workers]
 //!
 //! `group` polls share one store transaction, as the event loop groups the events that queued
 //! up while it worked (1: a transaction per poll). `jobs` (default 10) runs the same job that
 //! many times in a row, so the figure covers seconds rather than one job's tens of
-//! milliseconds.
+//! milliseconds. `workers` (default 8) synthetic workers take turns; in fast PSS each
+//! outcome is relayed to every other worker of the run, so the relay grows with them.
 
 use salient_coordinator::scheduler::{Config, Scheduler};
 use salient_grid::spec;
@@ -19,12 +20,14 @@ use std::time::Instant;
 fn cpu_seconds() -> f64 {
     let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
     let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<f64> = rest
-        .split_whitespace()
-        .filter_map(|x| x.parse().ok())
-        .collect();
-    f.get(11)
-        .zip(f.get(12))
+    // After the command's closing parenthesis come the state (field 3), ..., utime (14) and
+    // stime (15): indices 11 and 12 of what follows. The state is not a number, so the
+    // fields are indexed before they are parsed (filtering out what does not parse shifted
+    // them by one and read stime and cutime, the system time alone).
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let field = |i: usize| f.get(i).and_then(|x| x.parse::<f64>().ok());
+    field(11)
+        .zip(field(12))
         .map_or(f64::NAN, |(u, s)| (u + s) / 100.0)
 }
 
@@ -38,6 +41,7 @@ fn main() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(10)
         .max(1);
+    let n_workers: usize = args.get(5).and_then(|s| s.parse().ok()).unwrap_or(8).max(1);
     let json = format!(
         r#"{{"name": "bench", "system": {{"kind": "henon-heiles", "energy": 0.125}},
             "grid": {{"cells": [400, 400], "tile": [20, 20], "mode": "{mode}"}},
@@ -49,7 +53,7 @@ fn main() {
     let dir = tempfile::tempdir().unwrap();
     let store = Store::open(&dir.path().join("bench.db")).unwrap();
     let mut s = Scheduler::new(store, Config::default()).unwrap();
-    let workers: Vec<String> = (0..8)
+    let workers: Vec<String> = (0..n_workers)
         .map(|_| {
             s.register(&v1::RegisterRequest {
                 protocol_version: PROTOCOL_VERSION,
@@ -81,6 +85,10 @@ fn main() {
         }
     };
     let mut held: Vec<Option<v1::Lease>> = vec![None; workers.len()];
+    // Each worker's relay marks, sent back with every poll as a real worker does: without
+    // them every poll would be answered with the run's relay log from its start.
+    let mut marks: Vec<Vec<v1::RelayMark>> = vec![Vec::new(); workers.len()];
+    let mut relayed = 0u64;
     let (t0, c0) = (Instant::now(), cpu_seconds());
     let (mut outcomes, mut reports) = (0u64, 0u64);
     let mut k = 0;
@@ -108,10 +116,25 @@ fn main() {
                     worker_id: workers[w].clone(),
                     free_slots: 1,
                     reports: report.into_iter().collect(),
+                    relayed: marks[w].clone(),
                     ..Default::default()
                 })
                 .unwrap();
             held[w] = reply.leases.into_iter().next();
+            for r in reply.relays {
+                relayed += r.outcomes.len() as u64;
+                match marks[w]
+                    .iter_mut()
+                    .find(|m| (m.job, m.run) == (r.job, r.run))
+                {
+                    Some(m) => m.next = r.next,
+                    None => marks[w].push(v1::RelayMark {
+                        job: r.job,
+                        run: r.run,
+                        next: r.next,
+                    }),
+                }
+            }
             if k % group == 0 {
                 s.commit_group().unwrap();
             }
@@ -122,8 +145,9 @@ fn main() {
     }
     let (wall, cpu) = (t0.elapsed().as_secs_f64(), cpu_seconds() - c0);
     println!(
-        "mode {mode}, {visited} visited per outcome, {group} polls per transaction, {jobs} jobs: \
-         {outcomes} outcomes in {reports} reports, \
+        "mode {mode}, {visited} visited per outcome, {group} polls per transaction, {jobs} jobs, \
+         {n_workers} workers: \
+         {outcomes} outcomes in {reports} reports ({relayed} relayed to other workers), \
          {wall:.2} s wall, {:.0} outcomes/s, {:.1} µs CPU per outcome, {:.2} ms per report",
         outcomes as f64 / wall,
         1e6 * cpu / outcomes as f64,
