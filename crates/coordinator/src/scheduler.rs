@@ -2,6 +2,7 @@
 //! can be driven by the event loop and by tests alike. Each mutating call writes to the store
 //! before it returns, so the caller may acknowledge afterwards.
 
+use prost::bytes::Bytes;
 use prost::Message;
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::{Grid, Ledger};
@@ -91,7 +92,9 @@ struct Run {
     /// Fast PSS: every outcome received, with the serial of the worker that sent it
     /// (`u64::MAX`: loaded from the store), relayed to the other workers of the run
     /// ([`v1::Relay`]). Emptied when the run is done.
-    relay: Vec<(u64, v1::Outcome)>,
+    /// Each outcome as the store holds it, encoded once: every reply that relays it shares
+    /// these bytes.
+    relay: Vec<(u64, Bytes)>,
     /// Cells whose own outcome is in the store (the ledger forgets a dropped one, and a resent
     /// report must still change nothing).
     stored: Vec<bool>,
@@ -261,12 +264,13 @@ impl Scheduler {
             for stored in self.store.outcomes(id, index as u32).map_err(store_err)? {
                 let wire = v1::Outcome::decode(stored.data.as_slice())
                     .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
+                let encoded = Bytes::from(stored.data);
                 let o = outcome_from_wire(&wire, &run.grid, run.checkpoints)
                     .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
                 run.stored[o.cell as usize] = true;
                 run.ledger.offer(o);
                 if run.ledger.mode() == salient_grid::Mode::FastPss {
-                    run.relay.push((u64::MAX, wire));
+                    run.relay.push((u64::MAX, encoded));
                 }
             }
             run.cpu_ns = self
@@ -485,18 +489,16 @@ impl Scheduler {
             }
             // Only outcomes for cells without one change anything; repeats are answered OK.
             let mut seen = HashSet::new();
-            let fresh: Vec<(&v1::Outcome, Vec<u8>, salient_grid::Outcome)> = r
+            let fresh: Vec<(&v1::Outcome, Bytes, salient_grid::Outcome)> = r
                 .outcomes
                 .iter()
                 .zip(checked)
                 .filter(|(o, _)| !run.stored[o.cell as usize] && seen.insert(o.cell))
-                .map(|(o, checked)| (o, o.encode_to_vec(), checked))
+                .map(|(o, checked)| (o, Bytes::from(o.encode_to_vec()), checked))
                 .collect();
             if !fresh.is_empty() {
-                let blobs: Vec<(u32, &[u8])> = fresh
-                    .iter()
-                    .map(|(o, b, _)| (o.cell, b.as_slice()))
-                    .collect();
+                let blobs: Vec<(u32, &[u8])> =
+                    fresh.iter().map(|(o, b, _)| (o.cell, &b[..])).collect();
                 self.store
                     .commit_report(&Report {
                         job: lease.job,
@@ -510,11 +512,11 @@ impl Scheduler {
                     .map_err(store_err)?;
                 run.cpu_ns = run.cpu_ns.saturating_add(r.cpu_ns);
                 let serial = self.workers.get(worker).map_or(u64::MAX, |w| w.serial);
-                for (wire, _, o) in fresh {
+                for (_, encoded, o) in fresh {
                     run.stored[o.cell as usize] = true;
                     run.ledger.offer(o);
                     if run.ledger.mode() == salient_grid::Mode::FastPss {
-                        run.relay.push((serial, wire.clone()));
+                        run.relay.push((serial, encoded));
                     }
                 }
             }
@@ -786,7 +788,7 @@ impl Scheduler {
                 let (from, o) = &run.relay[next];
                 next += 1;
                 if *from != w.serial {
-                    bytes += o.encoded_len();
+                    bytes += o.len();
                     outcomes.push(o.clone());
                 }
             }

@@ -262,7 +262,12 @@ fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
             .iter()
             .map(|x| {
                 assert_eq!((x.job, x.run), (job, 0));
-                (x.outcomes.iter().map(|o| o.cell).collect(), x.next)
+                let cell = |b: &prost::bytes::Bytes| {
+                    <v1::Outcome as prost::Message>::decode(&b[..])
+                        .unwrap()
+                        .cell
+                };
+                (x.outcomes.iter().map(cell).collect(), x.next)
             })
             .collect()
     };

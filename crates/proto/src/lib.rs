@@ -296,4 +296,50 @@ mod tests {
             assert!(e.contains(field), "{e} does not name {field}");
         }
     }
+
+    /// `Relay.outcomes` as the wire sees it before it became `bytes`.
+    #[derive(Clone, PartialEq, prost::Message)]
+    struct RelayOfMessages {
+        #[prost(uint64, tag = "1")]
+        job: u64,
+        #[prost(uint32, tag = "2")]
+        run: u32,
+        #[prost(message, repeated, tag = "3")]
+        outcomes: Vec<v1::Outcome>,
+        #[prost(uint64, tag = "4")]
+        next: u64,
+    }
+
+    /// Relayed outcomes travel as encoded bytes, which on the wire are the bytes of
+    /// `repeated Outcome`: either side may read the other's encoding.
+    #[test]
+    fn relayed_bytes_are_the_wire_form_of_repeated_outcomes() {
+        let outcomes: Vec<v1::Outcome> = (0..3)
+            .map(|k| v1::Outcome {
+                cell: 7 + k,
+                class: 1,
+                status: 1,
+                sali: 0.25 * k as f64,
+                visited: vec![1, 5, 9 + k],
+                steps: 100 * k as u64,
+                checkpoints: vec![1, 3],
+                t_end: 1e4,
+            })
+            .collect();
+        let as_bytes = v1::Relay {
+            job: 4,
+            run: 2,
+            outcomes: outcomes.iter().map(|o| o.encode_to_vec().into()).collect(),
+            next: 11,
+        };
+        let as_messages = RelayOfMessages {
+            job: 4,
+            run: 2,
+            outcomes: outcomes.clone(),
+            next: 11,
+        };
+        assert_eq!(as_bytes.encode_to_vec(), as_messages.encode_to_vec());
+        let read = RelayOfMessages::decode(&as_bytes.encode_to_vec()[..]).unwrap();
+        assert_eq!(read.outcomes, outcomes);
+    }
 }

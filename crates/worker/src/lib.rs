@@ -611,8 +611,11 @@ impl LeaseSource {
 /// that does not fit the grid is logged and left out (the relay is advice, never a reason to
 /// stop).
 fn apply_relay(local: &LocalLedger, relay: &v1::Relay) {
-    for o in &relay.outcomes {
-        match outcome_from_wire(o, local.grid(), o.checkpoints.len()) {
+    for encoded in &relay.outcomes {
+        let checked = <v1::Outcome as prost::Message>::decode(&encoded[..])
+            .map_err(|e| e.to_string())
+            .and_then(|o| outcome_from_wire(&o, local.grid(), o.checkpoints.len()));
+        match checked {
             Ok(o) => local.offer(o),
             Err(e) => {
                 tracing::warn!(job = relay.job, run = relay.run, error = %e, "relayed outcome left out");
