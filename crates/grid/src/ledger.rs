@@ -50,21 +50,19 @@ pub struct Label {
 
 const COMPATIBLE: u8 = 1;
 const LABELLED: u8 = 2;
-/// The cell's own outcome waits in `pending`: the coordinator's lease search asks for every
-/// cell of its window on every poll, and a flag answers without a map lookup (that lookup was
-/// a quarter of the coordinator's CPU).
+/// The cell's own outcome waits in `pending`: the coordinator's lease search asks after every
+/// cell of its window, and a flag answers without a map lookup.
 const PENDING: u8 = 4;
 
 /// Commits outcomes in canonical order.
-
 #[derive(Clone, Debug)]
 pub struct Ledger {
     mode: Mode,
     canonical: Vec<u32>,
     position: Vec<u32>,
-    /// Per cell: [`COMPATIBLE`], [`LABELLED`] and [`PENDING`]. The hot checks read these bytes (160 kB at
-    /// 400×400, cache-resident) instead of `labels` (5 MB): a commit visits ~100 cells, and
-    /// a cache miss on each was most of its cost.
+    /// Per cell: [`COMPATIBLE`], [`LABELLED`] and [`PENDING`]. The hot checks read these
+    /// bytes (160 kB at 400×400, cache-resident) instead of `labels` (5 MB): a commit visits
+    /// ~100 cells, and a cache miss on each was most of its cost.
     flags: Vec<u8>,
     labels: Vec<Option<Label>>,
     /// Labels set so far (progress reporting asks after every batch; counting would scan the grid).
