@@ -166,7 +166,10 @@ impl Run {
             checkpoints: cell_run.checkpoint_steps().len(),
             adaptive_orbits_per_thread: match &cell_run.run.method {
                 salient_core::Method::TangentMap(_) => None,
-                m => Some(salient_core::run::adaptive_orbits_per_thread(m)),
+                m => Some(salient_core::run::adaptive_orbits_per_thread(
+                    m,
+                    cell_run.config.tau,
+                )),
             },
             tiles: (0..grid.tile_count()).map(|_| Tile::default()).collect(),
             grid,

@@ -146,11 +146,21 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
 /// Scales the deviation vectors of `y` to unit length (the factors rounded to f64, then applied
 /// in `T`'s precision); returns ln of the factor removed from the first.
 pub fn unit_vectors<T: Scalar, const N: usize, const K: usize>(y: &mut Phase<T, N, K>) -> f64 {
+    unit_deviations(&mut y.dq, &mut y.dp)
+}
+
+/// [`unit_vectors`] on the deviation vectors alone (δq, δp), so that a caller holding them
+/// elsewhere (a lane of a SIMD batch) need not assemble a whole phase point.
+#[inline(always)]
+pub fn unit_deviations<T: Scalar, const N: usize, const K: usize>(
+    dq: &mut [[T; N]; K],
+    dp: &mut [[T; N]; K],
+) -> f64 {
     let mut ln0 = 0.0;
     for k in 0..K {
-        let n2: f64 = y.dq[k]
+        let n2: f64 = dq[k]
             .iter()
-            .chain(&y.dp[k])
+            .chain(&dp[k])
             .map(|x| x.to_f64() * x.to_f64())
             .sum();
         let s = 1.0 / n2.sqrt();
@@ -159,15 +169,15 @@ pub fn unit_vectors<T: Scalar, const N: usize, const K: usize>(y: &mut Phase<T, 
         }
         let st = T::splat(s);
         for i in 0..N {
-            y.dq[k][i] = y.dq[k][i] * st;
-            y.dp[k][i] = y.dp[k][i] * st;
+            dq[k][i] = dq[k][i] * st;
+            dp[k][i] = dp[k][i] * st;
         }
     }
     ln0
 }
 
 /// The Taylor method as an adaptive integrator; the step's polynomial is the dense output.
-pub struct TaylorOrbit<'h, H, T, const N: usize, const K: usize> {
+pub struct TaylorOrbit<'h, H, T: crate::real::Real, const N: usize, const K: usize> {
     pub inner: Taylor<'h, H, T, N, K>,
     ham: &'h H,
     h0: T,

@@ -164,6 +164,19 @@ impl<B: Real> SubAssign for DoubleDouble<B> {
 }
 
 impl<B: Real> Real for DoubleDouble<B> {
+    type Lead = B;
+    const EXTENDED: bool = true;
+    #[inline(always)]
+    fn lead(self) -> B {
+        self.hi
+    }
+    #[inline(always)]
+    fn from_lead(x: B) -> Self {
+        DoubleDouble {
+            hi: x,
+            lo: B::splat(0.0),
+        }
+    }
     #[inline(always)]
     fn splat(x: f64) -> Self {
         DoubleDouble {

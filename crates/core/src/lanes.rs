@@ -6,13 +6,11 @@
 //!
 //! Taylor methods only: their step is one fixed sequence of operations whatever its size, so
 //! lanes never diverge in control flow (DOP853 rejects steps lane by lane). In use for
-//! `taylor-dd`; DOP853 and f64 Taylor run one orbit at a time, through
+//! `taylor-dd`, and for f64 Taylor at small τ; DOP853 runs one orbit at a time, through
 //! [`integrate_feed_scalar`] (see [`crate::run::integrate_feed_adaptive`]).
 
 use crate::adaptive::Abandoned;
-use crate::adaptive::{
-    integrate, relative, to_f64_phase, unit_vectors, AdaptiveIntegrator, Protocol, Watch,
-};
+use crate::adaptive::{integrate, relative, to_f64_phase, AdaptiveIntegrator, Protocol, Watch};
 use crate::batch::{BatchFeed, Feed, Isa, IDLE_POLL};
 use crate::dop853::StepFailure;
 use crate::orbit::{OrbitConfig, OrbitResult, Requests};
@@ -118,14 +116,10 @@ impl<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: u
         self.batch.borrow().t(self.lane)
     }
     fn state(&self) -> Phase<f64, N, K> {
-        to_f64_phase(&self.batch.borrow().state(self.lane))
+        self.batch.borrow().state_f64(self.lane)
     }
     fn renormalise(&mut self) -> f64 {
-        let mut batch = self.batch.borrow_mut();
-        let mut y = batch.state(self.lane);
-        let ln = unit_vectors(&mut y);
-        batch.set_state(self.lane, &y);
-        ln
+        self.batch.borrow_mut().unit_vectors(self.lane)
     }
     fn step(&mut self, t_end: f64) -> impl Future<Output = Result<(), StepFailure>> {
         self.slot.set(Slot::Asked(t_end));
@@ -166,7 +160,10 @@ pub struct TaylorSetup<'a, H> {
 /// put more orbits in flight, and in a fast-PSS run every orbit in flight beyond the frontier
 /// may be dropped when an earlier orbit labels its cell. `taylor-dd`, δ = 1e-5, 400×400,
 /// τ = 0.5, t = 1e4, 2 threads (2026-11-24): one orbit per thread 42.3 s; 4 lanes 24.6 s (32 %
-/// of the steps dropped; 27.4 s in AVX2 code); 8 AVX-512 lanes 28.7 s (47 % dropped).
+/// of the steps dropped; 27.4 s in AVX2 code); 8 AVX-512 lanes 28.7 s (47 % dropped). With
+/// its high orders in f64 (2026-11-25, `taylor::lead_order`) the step is far cheaper and the
+/// lanes' lead narrower: τ = 0.5 7.5–7.7 s in 4 lanes against 7.75–7.9 s one at a time,
+/// τ = 0.01 88.7 against 113 s.
 pub const TAYLOR_LANES: usize = 4;
 
 /// Integrates the orbits `feed` supplies with the Taylor method in number type `S` (`f64` or

@@ -21,6 +21,7 @@ pub trait Real:
     + Send
     + Sync
     + 'static
+    + core::fmt::Debug
 {
     /// The constant `x` in every lane.
     fn splat(x: f64) -> Self;
@@ -31,9 +32,29 @@ pub trait Real:
     fn ratio(num: f64, den: f64) -> Self {
         Self::splat(num / den)
     }
+    /// The type of this one's leading word: itself for f64 and lanes of f64, the high word's
+    /// type for double-double. Work whose rounding is far below the error a method allows
+    /// anyway runs in it (the Taylor recursion's high orders, see `taylor::lead_order`).
+    type Lead: Real;
+    /// Whether this type carries more precision than its leading word.
+    const EXTENDED: bool;
+    /// The leading word (the value itself when not [`Real::EXTENDED`]).
+    fn lead(self) -> Self::Lead;
+    /// The value of a leading word, exactly.
+    fn from_lead(x: Self::Lead) -> Self;
 }
 
 impl Real for f64 {
+    type Lead = f64;
+    const EXTENDED: bool = false;
+    #[inline(always)]
+    fn lead(self) -> f64 {
+        self
+    }
+    #[inline(always)]
+    fn from_lead(x: f64) -> Self {
+        x
+    }
     #[inline(always)]
     fn splat(x: f64) -> Self {
         x
@@ -95,6 +116,16 @@ impl<const L: usize> Neg for Lanes<L> {
 }
 
 impl<const L: usize> Real for Lanes<L> {
+    type Lead = Self;
+    const EXTENDED: bool = false;
+    #[inline(always)]
+    fn lead(self) -> Self {
+        self
+    }
+    #[inline(always)]
+    fn from_lead(x: Self) -> Self {
+        x
+    }
     #[inline(always)]
     fn splat(x: f64) -> Self {
         Lanes([x; L])

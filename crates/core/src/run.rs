@@ -96,20 +96,30 @@ pub fn run_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
     }
 }
 
+/// f64 Taylor runs in SIMD lanes below this τ, one orbit per thread above it. Lanes make a step
+/// cheaper per orbit (86 against 137 ns per orbit-step, 1 thread, 100×100, τ = 0.01,
+/// t = 1e3) but keep four orbits per thread in flight, and the fast-PSS rule drops about 30 %
+/// of their steps against 2–3 % one at a time; the more steps a crossing takes, the more the
+/// cheaper step pays. 400×400, t = 1e4, 2 threads (2026-11-25), one at a time against lanes:
+/// τ = 0.5 4.4–4.7 against 4.9–5.0 s, τ = 0.1 6.3 against 5.9 s, τ = 0.01 61.0 against
+/// 51.2 s. The same results either way (each lane computes what the scalar driver does).
+pub const F64_TAYLOR_LANES_BELOW_TAU: f64 = 0.25;
+
 /// How many orbits one thread of [`integrate_feed_adaptive`] integrates at once with the
-/// adaptive `method` (schedulers size their work by it).
-pub fn adaptive_orbits_per_thread(method: &Method) -> usize {
+/// adaptive `method` at renormalisation interval `tau` (schedulers size their work by it).
+pub fn adaptive_orbits_per_thread(method: &Method, tau: f64) -> usize {
     match method {
         Method::TaylorDd => TAYLOR_LANES,
+        Method::Taylor if tau < F64_TAYLOR_LANES_BELOW_TAU => TAYLOR_LANES,
         _ => 1,
     }
 }
 
 /// Integrates the orbits `feed` supplies with an adaptive method, each as [`run_adaptive`]
 /// would under a watch that passes its crossings to the feed and lets the feed abandon it, and
-/// hands each result to the feed as its orbit ends: `taylor-dd` [`adaptive_orbits_per_thread`]
-/// orbits at a time in SIMD lanes ([`crate::lanes`], the same bits), DOP853 and f64 Taylor one
-/// at a time.
+/// hands each result to the feed as its orbit ends: the Taylor methods
+/// [`adaptive_orbits_per_thread`] orbits at a time in SIMD lanes ([`crate::lanes`], the same
+/// bits) where that is more than one, DOP853 one at a time.
 pub fn integrate_feed_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
     ham: &H,
     run: &MethodRun,
@@ -118,29 +128,31 @@ pub fn integrate_feed_adaptive<H: TaylorSeries<N>, const N: usize, const K: usiz
     requests: &Requests,
     feed: &mut impl BatchFeed<N>,
 ) {
+    let setup = TaylorSetup {
+        ham,
+        delta: run.delta.expect("adaptive methods carry a tolerance"),
+        protocol: run.protocol,
+        config,
+        requests,
+    };
+    let vectors = initial_vectors::<N, K>(config.deviation);
     match &run.method {
         Method::TangentMap(_) => panic!("integrate_feed_adaptive is for adaptive methods"),
-        // One orbit at a time: DOP853 rejects steps lane by lane, and an f64 Taylor step is
-        // cheap enough that the orbits lanes put in flight cost more than the lanes save
-        // (400×400, τ = 0.5, t = 1e4, 2 threads: 3.7 s one at a time, 4.4 s in 4 lanes).
+        Method::Taylor if adaptive_orbits_per_thread(&run.method, config.tau) > 1 => {
+            let (dq, dp) = vectors;
+            integrate_feed_taylor::<H, f64, N, K>(&setup, |q, p| Phase { q, p, dq, dp }, feed)
+        }
+        // One orbit at a time: DOP853 rejects steps lane by lane, and at large τ an f64 Taylor
+        // step is cheap enough that the orbits lanes put in flight cost more than the lanes
+        // save.
         Method::Dop853 | Method::Taylor => integrate_feed_scalar(feed, |q, p, watch| {
             run_adaptive::<H, N, K>(ham, run, energy, q, p, config, requests, watch)
         }),
-        Method::TaylorDd => {
-            let setup = TaylorSetup {
-                ham,
-                delta: run.delta.expect("adaptive methods carry a tolerance"),
-                protocol: run.protocol,
-                config,
-                requests,
-            };
-            let vectors = initial_vectors::<N, K>(config.deviation);
-            integrate_feed_taylor::<H, DoubleDouble, N, K>(
-                &setup,
-                |q, p| dd_start(ham, energy, q, p, vectors),
-                feed,
-            )
-        }
+        Method::TaylorDd => integrate_feed_taylor::<H, DoubleDouble, N, K>(
+            &setup,
+            |q, p| dd_start(ham, energy, q, p, vectors),
+            feed,
+        ),
     }
 }
 

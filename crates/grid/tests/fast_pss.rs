@@ -4,7 +4,7 @@
 use salient_core::adaptive::Protocol;
 use salient_core::method::Method;
 use salient_core::orbit::OrbitConfig;
-use salient_core::run::MethodRun;
+use salient_core::run::{adaptive_orbits_per_thread, MethodRun};
 use salient_core::Scheme;
 use salient_grid::{integrate_cells, run_embedded, CellRun, Counts, Grid, Ledger, Mode};
 
@@ -100,8 +100,8 @@ fn labels_do_not_depend_on_threads_or_window() {
         }
         assert_eq!(cells(&a), cells(&b), "{threads} threads");
     }
-    // Adaptive methods stream one orbit per thread (taylor-dd a few per thread, in SIMD
-    // lanes), claiming crossed cells and abandoning orbits as they go: the labels are those of
+    // Adaptive methods stream one orbit per thread (the Taylor methods a few per thread, in SIMD
+    // lanes: taylor-dd always, f64 Taylor at small τ), claiming crossed cells and abandoning orbits as they go: the labels are those of
     // the sequential rule (rounds of one cell, the worker's path), with one thread or two.
     let mut dop = run.clone();
     dop.run = MethodRun {
@@ -114,7 +114,10 @@ fn labels_do_not_depend_on_threads_or_window() {
     taylor.run.method = Method::Taylor;
     let mut taylor_dd = dop.clone();
     taylor_dd.run.method = Method::TaylorDd;
-    for adaptive in [&dop, &taylor, &taylor_dd] {
+    let mut taylor_lanes = taylor.clone();
+    taylor_lanes.config = OrbitConfig::new(0.1, 500.0);
+    assert!(adaptive_orbits_per_thread(&Method::Taylor, 0.1) > 1);
+    for adaptive in [&dop, &taylor, &taylor_dd, &taylor_lanes] {
         let mut sequential = Ledger::new(&grid, Mode::FastPss);
         while !sequential.done() {
             let next = sequential.needed(1, &|_| false);
