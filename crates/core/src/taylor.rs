@@ -863,14 +863,14 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
     pub fn unit_vectors(&mut self, l: usize) -> f64 {
         let mut dq = self.y.dq.map(|v| v.map(|x| x.lane(l)));
         let mut dp = self.y.dp.map(|v| v.map(|x| x.lane(l)));
-        let ln = crate::adaptive::unit_deviations(&mut dq, &mut dp);
+        let length = crate::adaptive::unit_deviations(&mut dq, &mut dp);
         for k in 0..K {
             for i in 0..N {
                 self.y.dq[k][i].set_lane(l, dq[k][i]);
                 self.y.dp[k][i].set_lane(l, dp[k][i]);
             }
         }
-        ln
+        length
     }
 
     /// Replaces the state of lane `l` at its current time.
