@@ -22,6 +22,19 @@ pub struct Phase<T, const N: usize, const K: usize> {
     pub dp: [[T; N]; K],
 }
 
+impl<T: Copy, const N: usize, const K: usize> Phase<T, N, K> {
+    /// The phase point of `f` applied to every component.
+    #[inline(always)]
+    pub fn map<U>(self, f: impl Fn(T) -> U) -> Phase<U, N, K> {
+        Phase {
+            q: self.q.map(&f),
+            p: self.p.map(&f),
+            dq: self.dq.map(|v| v.map(&f)),
+            dp: self.dp.map(|v| v.map(&f)),
+        }
+    }
+}
+
 impl<T: Real, const N: usize, const K: usize> Phase<T, N, K> {
     pub fn zero() -> Self {
         let z = [T::splat(0.0); N];

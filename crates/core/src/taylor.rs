@@ -426,59 +426,66 @@ impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
     pub fn eval(&self, s: T) -> Phase<T, N, K> {
         let p = self.order;
         let split = self.lead_split(p);
-        let mut y = Phase::zero();
-        let below = if split <= p {
-            let (sl, c) = (s.lead(), &self.lead);
-            let mut z = Phase::<T::Lead, N, K>::zero();
-            for i in 0..N {
-                z.q[i] = c.q[i][p];
-                z.p[i] = c.p[i][p];
-                for v in 0..K {
-                    z.dq[v][i] = c.dq[v][i][p];
-                    z.dp[v][i] = c.dp[v][i][p];
-                }
-            }
-            for k in (split..p).rev() {
-                for i in 0..N {
-                    z.q[i] = z.q[i].mul_add(sl, c.q[i][k]);
-                    z.p[i] = z.p[i].mul_add(sl, c.p[i][k]);
-                    for v in 0..K {
-                        z.dq[v][i] = z.dq[v][i].mul_add(sl, c.dq[v][i][k]);
-                        z.dp[v][i] = z.dp[v][i].mul_add(sl, c.dp[v][i][k]);
-                    }
-                }
-            }
-            for i in 0..N {
-                y.q[i] = T::from_lead(z.q[i]);
-                y.p[i] = T::from_lead(z.p[i]);
-                for v in 0..K {
-                    y.dq[v][i] = T::from_lead(z.dq[v][i]);
-                    y.dp[v][i] = T::from_lead(z.dp[v][i]);
-                }
-            }
-            split
+        let mine = Coefficients::of(&self.q, &self.p, &self.dq, &self.dp);
+        let (mut y, below) = if split <= p {
+            let c = &self.lead;
+            let lead = Coefficients::of(&c.q, &c.p, &c.dq, &c.dp);
+            let mut z = lead.phase(|x| x[p]);
+            lead.horner(&mut z, s.lead(), split..p, |x, k| x[k]);
+            (z.map(T::from_lead), split)
         } else {
-            for i in 0..N {
-                y.q[i] = self.q[i][p];
-                y.p[i] = self.p[i][p];
-                for v in 0..K {
-                    y.dq[v][i] = self.dq[v][i][p];
-                    y.dp[v][i] = self.dp[v][i][p];
-                }
-            }
-            p
+            (mine.phase(|x| x[p]), p)
         };
-        for k in (0..below).rev() {
+        mine.horner(&mut y, s, 0..below, |x, k| x[k]);
+        y
+    }
+}
+
+/// The series of every component of a phase point (and its deviation vectors), seen together.
+struct Coefficients<'a, S, const N: usize, const K: usize> {
+    q: &'a [S; N],
+    p: &'a [S; N],
+    dq: &'a [[S; N]; K],
+    dp: &'a [[S; N]; K],
+}
+
+impl<'a, S, const N: usize, const K: usize> Coefficients<'a, S, N, K> {
+    #[inline(always)]
+    fn of(q: &'a [S; N], p: &'a [S; N], dq: &'a [[S; N]; K], dp: &'a [[S; N]; K]) -> Self {
+        Coefficients { q, p, dq, dp }
+    }
+
+    /// The phase point of `get` applied to every component's series.
+    #[inline(always)]
+    fn phase<U>(&self, get: impl Fn(&S) -> U) -> Phase<U, N, K> {
+        Phase {
+            q: core::array::from_fn(|i| get(&self.q[i])),
+            p: core::array::from_fn(|i| get(&self.p[i])),
+            dq: core::array::from_fn(|v| core::array::from_fn(|i| get(&self.dq[v][i]))),
+            dp: core::array::from_fn(|v| core::array::from_fn(|i| get(&self.dp[v][i]))),
+        }
+    }
+
+    /// Horner's rule over the orders `orders` from the top down: y ← y·s + get(series, k),
+    /// every component's chain advanced one order at a time.
+    #[inline(always)]
+    fn horner<U: Real>(
+        &self,
+        y: &mut Phase<U, N, K>,
+        s: U,
+        orders: core::ops::Range<usize>,
+        get: impl Fn(&S, usize) -> U,
+    ) {
+        for k in orders.rev() {
             for i in 0..N {
-                y.q[i] = y.q[i].mul_add(s, self.q[i][k]);
-                y.p[i] = y.p[i].mul_add(s, self.p[i][k]);
+                y.q[i] = y.q[i].mul_add(s, get(&self.q[i], k));
+                y.p[i] = y.p[i].mul_add(s, get(&self.p[i], k));
                 for v in 0..K {
-                    y.dq[v][i] = y.dq[v][i].mul_add(s, self.dq[v][i][k]);
-                    y.dp[v][i] = y.dp[v][i].mul_add(s, self.dp[v][i][k]);
+                    y.dq[v][i] = y.dq[v][i].mul_add(s, get(&self.dq[v][i], k));
+                    y.dp[v][i] = y.dp[v][i].mul_add(s, get(&self.dp[v][i], k));
                 }
             }
         }
-        y
     }
 }
 
@@ -525,56 +532,18 @@ impl<T: Lanewise, const N: usize, const K: usize> Jet<T, N, K> {
     /// Lane `l`'s polynomial at `s`, by [`Jet::eval`]'s operations on that lane alone (the
     /// lead orders read from `T`'s series, which hold them exactly).
     pub fn eval_lane(&self, l: usize, s: T::Lane) -> Phase<T::Lane, N, K> {
-        type Lead<T> = <<T as Lanewise>::Lane as Real>::Lead;
         let p = self.order;
         let split = self.lead_split(p);
-        let c = |x: &Series<T>, k: usize| x[k].lane(l);
-        let top = |at: &dyn Fn(&Series<T>) -> T::Lane| Phase {
-            q: core::array::from_fn(|i| at(&self.q[i])),
-            p: core::array::from_fn(|i| at(&self.p[i])),
-            dq: core::array::from_fn(|v| core::array::from_fn(|i| at(&self.dq[v][i]))),
-            dp: core::array::from_fn(|v| core::array::from_fn(|i| at(&self.dp[v][i]))),
-        };
+        let mine = Coefficients::of(&self.q, &self.p, &self.dq, &self.dp);
         let (mut y, below) = if split <= p {
-            let sl = s.lead();
-            let cl = |x: &Series<T>, k: usize| -> Lead<T> { c(x, k).lead() };
-            let mut z: Phase<Lead<T>, N, K> = Phase {
-                q: core::array::from_fn(|i| cl(&self.q[i], p)),
-                p: core::array::from_fn(|i| cl(&self.p[i], p)),
-                dq: core::array::from_fn(|v| core::array::from_fn(|i| cl(&self.dq[v][i], p))),
-                dp: core::array::from_fn(|v| core::array::from_fn(|i| cl(&self.dp[v][i], p))),
-            };
-            for k in (split..p).rev() {
-                for i in 0..N {
-                    z.q[i] = z.q[i].mul_add(sl, cl(&self.q[i], k));
-                    z.p[i] = z.p[i].mul_add(sl, cl(&self.p[i], k));
-                    for v in 0..K {
-                        z.dq[v][i] = z.dq[v][i].mul_add(sl, cl(&self.dq[v][i], k));
-                        z.dp[v][i] = z.dp[v][i].mul_add(sl, cl(&self.dp[v][i], k));
-                    }
-                }
-            }
-            let up = |x: Lead<T>| T::Lane::from_lead(x);
-            let y = Phase {
-                q: z.q.map(up),
-                p: z.p.map(up),
-                dq: z.dq.map(|v| v.map(up)),
-                dp: z.dp.map(|v| v.map(up)),
-            };
-            (y, split)
+            let lead = |x: &Series<T>, k: usize| x[k].lane(l).lead();
+            let mut z = mine.phase(|x| lead(x, p));
+            mine.horner(&mut z, s.lead(), split..p, lead);
+            (z.map(<T::Lane as Real>::from_lead), split)
         } else {
-            (top(&|x| c(x, p)), p)
+            (mine.phase(|x| x[p].lane(l)), p)
         };
-        for k in (0..below).rev() {
-            for i in 0..N {
-                y.q[i] = y.q[i].mul_add(s, c(&self.q[i], k));
-                y.p[i] = y.p[i].mul_add(s, c(&self.p[i], k));
-                for v in 0..K {
-                    y.dq[v][i] = y.dq[v][i].mul_add(s, c(&self.dq[v][i], k));
-                    y.dp[v][i] = y.dp[v][i].mul_add(s, c(&self.dp[v][i], k));
-                }
-            }
-        }
+        mine.horner(&mut y, s, 0..below, |x, k| x[k].lane(l));
         y
     }
 }
