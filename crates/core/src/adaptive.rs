@@ -135,7 +135,7 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
         self.t_prev
     }
     fn steps(&self) -> u64 {
-        self.inner.accepted
+        self.inner.ctl.accepted
     }
     fn energy_error(&self, at: Option<f64>) -> f64 {
         let y = at.map_or(self.inner.y, |t| self.interpolate(t));

@@ -11,7 +11,9 @@
 #![allow(clippy::excessive_precision)]
 
 use crate::hamiltonian::Hamiltonian;
+use crate::real::{Lanes, Real};
 use crate::tangent::Phase;
+use crate::taylor::{phase_lane, set_phase_lane};
 
 // Nodes c_i. The systems here are autonomous, so only the tableau test reads them.
 #[cfg_attr(not(test), allow(dead_code))]
@@ -237,24 +239,24 @@ const MAIN: [usize; 8] = [0, 5, 6, 7, 8, 9, 10, 11];
 
 /// The right-hand side of the orbit and its variational equations.
 #[inline(always)]
-pub fn rhs<H: Hamiltonian<N>, const N: usize, const K: usize>(
+pub fn rhs<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
     ham: &H,
-    y: &Phase<f64, N, K>,
-) -> Phase<f64, N, K> {
+    y: &Phase<T, N, K>,
+) -> Phase<T, N, K> {
     let g = ham.grad(&y.q);
     let h = ham.hessian(&y.q);
     let mut f = Phase {
         q: y.p,
-        p: [0.0; N],
+        p: [T::splat(0.0); N],
         dq: y.dp,
-        dp: [[0.0; N]; K],
+        dp: [[T::splat(0.0); N]; K],
     };
     for i in 0..N {
         f.p[i] = -g[i];
     }
     for k in 0..K {
         for i in 0..N {
-            let mut s = 0.0;
+            let mut s = T::splat(0.0);
             for j in 0..N {
                 s = h[i][j].mul_add(y.dq[k][j], s);
             }
@@ -264,21 +266,55 @@ pub fn rhs<H: Hamiltonian<N>, const N: usize, const K: usize>(
     f
 }
 
-/// y + h Σ a_j k_j.
+/// y + h Σ_j a_j k_j over one row of the tableau.
 #[inline(always)]
-fn stage<const N: usize, const K: usize>(
-    y: &Phase<f64, N, K>,
-    h: f64,
+fn stage<T: Real, const N: usize, const K: usize>(
+    y: &Phase<T, N, K>,
+    h: T,
     row: &[(usize, f64)],
-    k: &[Phase<f64, N, K>],
-) -> Phase<f64, N, K> {
+    k: &[Phase<T, N, K>],
+) -> Phase<T, N, K> {
     let mut acc = Phase::zero();
     for &(j, a) in row {
-        acc.axpy(a, &k[j]);
+        acc.axpy(T::splat(a), &k[j]);
     }
     let mut out = *y;
     out.axpy(h, &acc);
     out
+}
+
+/// One attempt of size `h` from y with slope f0: fills the stages `k[0..12]` and returns the
+/// 8th-order solution and the 5th- and 3rd-order error estimates. Generic so that SIMD lanes
+/// ([`Dop853Lanes`]) compute in each lane exactly what [`Dop853::step`] computes.
+#[inline(always)]
+fn attempt<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
+    ham: &H,
+    y: &Phase<T, N, K>,
+    f0: &Phase<T, N, K>,
+    h: T,
+    k: &mut [Phase<T, N, K>; 16],
+) -> (Phase<T, N, K>, Phase<T, N, K>, Phase<T, N, K>) {
+    k[0] = *f0;
+    let rows: [&[(usize, f64)]; 11] = [&A2, &A3, &A4, &A5, &A6, &A7, &A8, &A9, &A10, &A11, &A12];
+    for (s, row) in rows.iter().enumerate() {
+        let ys = stage(y, h, row, &k[..]);
+        k[s + 1] = rhs(ham, &ys);
+    }
+    let mut incr = Phase::zero();
+    for (w, &j) in B.iter().zip(&MAIN) {
+        incr.axpy(T::splat(*w), &k[j]);
+    }
+    let mut y1 = *y;
+    y1.axpy(h, &incr);
+    let mut e5 = Phase::zero();
+    for (w, &j) in ER.iter().zip(&MAIN) {
+        e5.axpy(T::splat(*w), &k[j]);
+    }
+    let mut e3 = incr;
+    e3.axpy(T::splat(-BHH[0]), &k[0]);
+    e3.axpy(T::splat(-BHH[1]), &k[8]);
+    e3.axpy(T::splat(-BHH[2]), &k[11]);
+    (y1, e5, e3)
 }
 
 /// Tolerances and controller parameters.
@@ -374,13 +410,149 @@ pub struct Dop853<'h, H, const N: usize, const K: usize> {
     /// (index 12 holds the FSAL slope at its end), with the step's start in `last`.
     k: [Phase<f64, N, K>; 16],
     last: LastStep<N, K>,
+    /// The step-size controller.
+    pub ctl: Control,
+    pub evaluations: u64,
+}
+
+/// Hairer's step-size controller: its memory, and the size of the next attempt.
+#[derive(Clone, Copy, Debug)]
+pub struct Control {
     /// The step to try next.
     pub h: f64,
     fac_old: f64,
     rejected_last: bool,
     pub accepted: u64,
     pub rejected: u64,
-    pub evaluations: u64,
+}
+
+impl Control {
+    fn new() -> Self {
+        Control {
+            h: 0.0,
+            fac_old: 1e-4,
+            rejected_last: false,
+            accepted: 0,
+            rejected: 0,
+        }
+    }
+
+    /// The next attempt from t toward t_end: its size, the size the controller asked for, and
+    /// whether it lands on t_end.
+    #[inline(always)]
+    fn plan(&self, c: &Dop853Config, t: f64, t_end: f64) -> Result<(f64, f64, bool), StepFailure> {
+        let h_try = self.h.min(c.h_max);
+        let mut h = h_try;
+        let mut last = false;
+        if t + 1.01 * h >= t_end {
+            h = t_end - t;
+            last = true;
+        }
+        if 0.1 * h.abs() <= t.abs() * f64::EPSILON || h <= 0.0 {
+            return Err(StepFailure::StepTooSmall { t });
+        }
+        Ok((h, h_try, last))
+    }
+
+    /// Judges an attempt planned by [`Self::plan`] whose error is `err` (finite): true when it
+    /// is accepted. Either way the next attempt's size is set.
+    #[inline(always)]
+    fn judge(&mut self, c: &Dop853Config, err: f64, (h, h_try, last): (f64, f64, bool)) -> bool {
+        let fac11 = || err.powf(1.0 / 8.0);
+        let rejected_last = self.rejected_last;
+        let predict = || {
+            let fac = (fac11() / c.safe).clamp(1.0 / c.fac_max, 1.0 / c.fac_min);
+            let h_new = h / fac;
+            if rejected_last {
+                h_new.min(h)
+            } else {
+                h_new
+            }
+        };
+        if err <= 1.0 {
+            self.fac_old = err.max(1e-4);
+            self.rejected_last = false;
+            self.accepted += 1;
+            // A step cut short to land on t_end says little about the natural step: keep
+            // the prediction made before the cut (the restart protocol feeds it back).
+            // A prediction is at most h·fac_max, so when that stays below h_try the
+            // prediction (a root of err) is not needed: the restart protocol at small τ.
+            self.h = if last && h < h_try {
+                if h * c.fac_max * (1.0 + 4.0 * f64::EPSILON) < h_try {
+                    h_try
+                } else {
+                    predict().max(h_try)
+                }
+            } else {
+                predict()
+            };
+            return true;
+        }
+        self.h = h / (1.0 / c.fac_min).min(fac11() / c.safe);
+        self.rejected_last = true;
+        if self.accepted >= 1 {
+            self.rejected += 1;
+        }
+        false
+    }
+}
+
+/// The dense output of the accepted step `last` whose stages 0..=12 are in `k` (3 more
+/// evaluations fill 13..=15).
+fn dense_from<H: Hamiltonian<N>, const N: usize, const K: usize>(
+    ham: &H,
+    last: &LastStep<N, K>,
+    k: &mut [Phase<f64, N, K>; 16],
+    d: &mut Dense<N, K>,
+) {
+    let LastStep { t, h, y0, y1 } = *last;
+    let extra: [(&[(usize, f64)], usize); 3] = [(&A14, 13), (&A15, 14), (&A16, 15)];
+    for (row, idx) in extra {
+        let ys = stage(&y0, h, row, &k[..]);
+        k[idx] = rhs(ham, &ys);
+    }
+    let mut c1 = y1;
+    c1.axpy(-1.0, &y0);
+    let mut c2 = k[0];
+    c2.scale(h);
+    c2.axpy(-1.0, &c1);
+    let mut c3 = c1;
+    c3.axpy(-h, &k[12]);
+    c3.axpy(-1.0, &c2);
+    let mut cs = [Phase::zero(); 4];
+    let stages: [usize; 12] = [0, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15];
+    for (row, out) in D.iter().zip(cs.iter_mut()) {
+        for (w, &j) in row.iter().zip(&stages) {
+            out.axpy(*w, &k[j]);
+        }
+        out.scale(h);
+    }
+    d.t_old = t;
+    d.h = h;
+    d.c = [y0, c1, c2, c3, cs[0], cs[1], cs[2], cs[3]];
+}
+
+/// Hairer's combined error estimate of an attempt of size h from y0 to y1 with the estimates
+/// e5 and e3: err = |h| E5 / sqrt(n (E5 + 0.01 E3)); accepted when ≤ 1.
+#[inline(always)]
+fn error_norm<const N: usize, const K: usize>(
+    c: &Dop853Config,
+    (y0, y1): (&Phase<f64, N, K>, &Phase<f64, N, K>),
+    (e5, e3): (&Phase<f64, N, K>, &Phase<f64, N, K>),
+    h: f64,
+) -> f64 {
+    let (mut err5, mut err3) = (0.0, 0.0);
+    y0.zip3_for_each(y1, e5, e3, |y0, y1, a, b| {
+        let sk = c.atol + c.rtol * y0.abs().max(y1.abs());
+        err5 += (a / sk) * (a / sk);
+        err3 += (b / sk) * (b / sk);
+    });
+    let mut deno = err5 + 0.01 * err3;
+    if deno <= 0.0 {
+        deno = 1.0;
+    }
+    let dim = (2 * N * (K + 1)) as f64;
+    h.abs() * err5 * (1.0 / (dim * deno)).sqrt()
 }
 
 impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> {
@@ -400,19 +572,11 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
                 y0: y,
                 y1: y,
             },
-            h: 0.0,
-            fac_old: 1e-4,
-            rejected_last: false,
-            accepted: 0,
-            rejected: 0,
+            ctl: Control::new(),
             evaluations: 1,
         };
-        s.h = s.initial_step();
+        s.ctl.h = s.initial_step();
         s
-    }
-
-    fn dim() -> f64 {
-        (2 * N * (K + 1)) as f64
     }
 
     /// Hairer's HINIT for order 8: an explicit Euler probe of the solution's scale.
@@ -464,104 +628,31 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
     pub fn step(&mut self, t_end: f64, dense: Option<&mut Dense<N, K>>) -> Result<(), StepFailure> {
         let c = self.config;
         loop {
-            let h_try = self.h.min(c.h_max);
-            let mut h = h_try;
-            let mut last = false;
-            if self.t + 1.01 * h >= t_end {
-                h = t_end - self.t;
-                last = true;
-            }
-            if 0.1 * h.abs() <= self.t.abs() * f64::EPSILON || h <= 0.0 {
-                return Err(StepFailure::StepTooSmall { t: self.t });
-            }
-            let k = &mut self.k;
-            k[0] = self.f0;
-            let rows: [&[(usize, f64)]; 11] =
-                [&A2, &A3, &A4, &A5, &A6, &A7, &A8, &A9, &A10, &A11, &A12];
-            for (s, row) in rows.iter().enumerate() {
-                let ys = stage(&self.y, h, row, &k[..]);
-                k[s + 1] = rhs(self.ham, &ys);
-            }
+            let plan = self.ctl.plan(&c, self.t, t_end)?;
+            let (h, _, last) = plan;
+            let (y1, e5, e3) = attempt(self.ham, &self.y, &self.f0, h, &mut self.k);
             self.evaluations += 11;
-            // 8th-order solution.
-            let mut incr = Phase::zero();
-            for (w, &j) in B.iter().zip(&MAIN) {
-                incr.axpy(*w, &k[j]);
-            }
-            let mut y1 = self.y;
-            y1.axpy(h, &incr);
-            // Hairer's combined estimate: err = |h| E5 / sqrt(n (E5 + 0.01 E3)).
-            let mut e5 = Phase::zero();
-            for (w, &j) in ER.iter().zip(&MAIN) {
-                e5.axpy(*w, &k[j]);
-            }
-            let mut e3 = incr;
-            e3.axpy(-BHH[0], &k[0]);
-            e3.axpy(-BHH[1], &k[8]);
-            e3.axpy(-BHH[2], &k[11]);
-            let (mut err5, mut err3) = (0.0, 0.0);
-            self.y.zip3_for_each(&y1, &e5, &e3, |y0, y1, a, b| {
-                let sk = c.atol + c.rtol * y0.abs().max(y1.abs());
-                err5 += (a / sk) * (a / sk);
-                err3 += (b / sk) * (b / sk);
-            });
-            let mut deno = err5 + 0.01 * err3;
-            if deno <= 0.0 {
-                deno = 1.0;
-            }
-            let err = h.abs() * err5 * (1.0 / (Self::dim() * deno)).sqrt();
+            let err = error_norm(&c, (&self.y, &y1), (&e5, &e3), h);
             if !err.is_finite() {
                 return Err(StepFailure::NonFinite { t: self.t });
             }
-            let fac11 = || err.powf(1.0 / 8.0);
-            let rejected_last = self.rejected_last;
-            let predict = || {
-                let fac = (fac11() / c.safe).clamp(1.0 / c.fac_max, 1.0 / c.fac_min);
-                let h_new = h / fac;
-                if rejected_last {
-                    h_new.min(h)
-                } else {
-                    h_new
-                }
-            };
-            if err <= 1.0 {
-                self.fac_old = err.max(1e-4);
+            if self.ctl.judge(&c, err, plan) {
                 let f1 = rhs(self.ham, &y1);
                 self.evaluations += 1;
-                k[12] = f1;
+                self.k[12] = f1;
                 self.last = LastStep {
                     t: self.t,
                     h,
                     y0: self.y,
                     y1,
                 };
-                self.rejected_last = false;
-                self.accepted += 1;
                 self.t = if last { t_end } else { self.t + h };
                 self.y = y1;
                 self.f0 = f1;
                 if let Some(d) = dense {
                     self.dense_output(d);
                 }
-                // A step cut short to land on t_end says little about the natural step: keep
-                // the prediction made before the cut (the restart protocol feeds it back).
-                // A prediction is at most h·fac_max, so when that stays below h_try the
-                // prediction (a root of err) is not needed: the restart protocol at small τ.
-                self.h = if last && h < h_try {
-                    if h * c.fac_max * (1.0 + 4.0 * f64::EPSILON) < h_try {
-                        h_try
-                    } else {
-                        predict().max(h_try)
-                    }
-                } else {
-                    predict()
-                };
                 return Ok(());
-            }
-            self.h = h / (1.0 / c.fac_min).min(fac11() / c.safe);
-            self.rejected_last = true;
-            if self.accepted >= 1 {
-                self.rejected += 1;
             }
         }
     }
@@ -569,33 +660,8 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
     /// Fills `d` with the dense output of the last accepted step (3 more evaluations). Valid
     /// until the next call of [`Self::step`] (a renormalisation in between does not matter).
     pub fn dense_output(&mut self, d: &mut Dense<N, K>) {
-        let LastStep { t, h, y0, y1 } = self.last;
-        let k = &mut self.k;
-        let extra: [(&[(usize, f64)], usize); 3] = [(&A14, 13), (&A15, 14), (&A16, 15)];
-        for (row, idx) in extra {
-            let ys = stage(&y0, h, row, &k[..]);
-            k[idx] = rhs(self.ham, &ys);
-        }
+        dense_from(self.ham, &self.last, &mut self.k, d);
         self.evaluations += 3;
-        let mut c1 = y1;
-        c1.axpy(-1.0, &y0);
-        let mut c2 = k[0];
-        c2.scale(h);
-        c2.axpy(-1.0, &c1);
-        let mut c3 = c1;
-        c3.axpy(-h, &k[12]);
-        c3.axpy(-1.0, &c2);
-        let mut cs = [Phase::zero(); 4];
-        let stages: [usize; 12] = [0, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15];
-        for (row, out) in D.iter().zip(cs.iter_mut()) {
-            for (w, &j) in row.iter().zip(&stages) {
-                out.axpy(*w, &k[j]);
-            }
-            out.scale(h);
-        }
-        d.t_old = t;
-        d.h = h;
-        d.c = [y0, c1, c2, c3, cs[0], cs[1], cs[2], cs[3]];
     }
 
     /// One step of exactly `h`, with no error control: for measuring the method's order.
@@ -620,15 +686,234 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
 
     /// One step of exactly `h` with dense output, no error control (tests).
     pub fn fixed_step_dense(&mut self, h: f64) -> Dense<N, K> {
-        let saved = (self.config, self.h);
+        let saved = (self.config, self.ctl.h);
         self.config.rtol = 1e300;
         self.config.atol = 1e300;
-        self.h = h;
+        self.ctl.h = h;
         let mut d = Dense::empty();
         let t_end = self.t + h;
         self.step(t_end, Some(&mut d)).expect("fixed step");
-        (self.config, self.h) = saved;
+        (self.config, self.ctl.h) = saved;
         d
+    }
+}
+
+/// `L` DOP853 integrations side by side, one per SIMD lane: the stages run on all lanes at
+/// once, the error norm and the controller lane by lane with [`Dop853`]'s own functions, so
+/// each lane computes exactly what [`Dop853`] computes for its orbit alone. A lane steps only
+/// when asked; a lane whose attempt is rejected tries again in another pass over all lanes
+/// while the lanes already accepted wait (their stages kept for the dense output).
+pub struct Dop853Lanes<'h, H, const N: usize, const K: usize, const L: usize> {
+    ham: &'h H,
+    config: Dop853Config,
+    t: [f64; L],
+    t_prev: [f64; L],
+    y: Phase<Lanes<L>, N, K>,
+    f0: Phase<Lanes<L>, N, K>,
+    k: Box<[Phase<Lanes<L>, N, K>; 16]>,
+    /// The stages of lanes accepted in an earlier pass of the last step (`in_kept`).
+    kept: Box<[Phase<Lanes<L>, N, K>; 16]>,
+    in_kept: [bool; L],
+    ctl: [Control; L],
+    /// Each lane's last accepted step: its start time and size, the state it started from and
+    /// the one it reached (kept apart from `y`, which a renormalisation changes).
+    last_t: [f64; L],
+    last_h: [f64; L],
+    last_y0: Phase<Lanes<L>, N, K>,
+    last_y1: Phase<Lanes<L>, N, K>,
+    pub evaluations: [u64; L],
+}
+
+/// dst ← src in the lanes where `mask` is set.
+#[inline(always)]
+fn blend<const N: usize, const K: usize, const L: usize>(
+    dst: &mut Phase<Lanes<L>, N, K>,
+    src: &Phase<Lanes<L>, N, K>,
+    mask: &[bool; L],
+) {
+    dst.zip_mut(src, |d, s| {
+        for l in 0..L {
+            if mask[l] {
+                d.0[l] = s.0[l];
+            }
+        }
+    });
+}
+
+/// [`error_norm`] of every lane at once, each lane's sums in the same order.
+#[inline(always)]
+fn error_norms<const N: usize, const K: usize, const L: usize>(
+    c: &Dop853Config,
+    (y0, y1): (&Phase<Lanes<L>, N, K>, &Phase<Lanes<L>, N, K>),
+    (e5, e3): (&Phase<Lanes<L>, N, K>, &Phase<Lanes<L>, N, K>),
+    h: &Lanes<L>,
+) -> [f64; L] {
+    let (mut err5, mut err3) = ([0.0; L], [0.0; L]);
+    y0.zip3_for_each(y1, e5, e3, |y0, y1, a, b| {
+        for l in 0..L {
+            let sk = c.atol + c.rtol * y0.0[l].abs().max(y1.0[l].abs());
+            err5[l] += (a.0[l] / sk) * (a.0[l] / sk);
+            err3[l] += (b.0[l] / sk) * (b.0[l] / sk);
+        }
+    });
+    let dim = (2 * N * (K + 1)) as f64;
+    core::array::from_fn(|l| {
+        let mut deno = err5[l] + 0.01 * err3[l];
+        if deno <= 0.0 {
+            deno = 1.0;
+        }
+        h.0[l].abs() * err5[l] * (1.0 / (dim * deno)).sqrt()
+    })
+}
+
+impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
+    Dop853Lanes<'h, H, N, K, L>
+{
+    pub fn new(ham: &'h H, config: Dop853Config) -> Self {
+        Dop853Lanes {
+            ham,
+            config,
+            t: [0.0; L],
+            t_prev: [0.0; L],
+            y: Phase::zero(),
+            f0: Phase::zero(),
+            k: Box::new([Phase::zero(); 16]),
+            kept: Box::new([Phase::zero(); 16]),
+            in_kept: [false; L],
+            ctl: [Control::new(); L],
+            last_t: [0.0; L],
+            last_h: [0.0; L],
+            last_y0: Phase::zero(),
+            last_y1: Phase::zero(),
+            evaluations: [0; L],
+        }
+    }
+
+    /// Starts lane `l` at (t0, y) as [`Dop853::new`] starts (the same first slope and step).
+    pub fn start(&mut self, l: usize, t0: f64, y: &Phase<f64, N, K>) {
+        let one = Dop853::new(self.ham, self.config, t0, *y);
+        set_phase_lane(&mut self.y, l, y);
+        set_phase_lane(&mut self.f0, l, &one.f0);
+        self.t[l] = t0;
+        self.t_prev[l] = t0;
+        self.ctl[l] = one.ctl;
+        self.evaluations[l] = one.evaluations;
+    }
+
+    pub fn t(&self, l: usize) -> f64 {
+        self.t[l]
+    }
+
+    /// Where lane `l`'s last accepted step started.
+    pub fn t_prev(&self, l: usize) -> f64 {
+        self.t_prev[l]
+    }
+
+    /// Lane `l`'s accepted steps.
+    pub fn steps(&self, l: usize) -> u64 {
+        self.ctl[l].accepted
+    }
+
+    pub fn state(&self, l: usize) -> Phase<f64, N, K> {
+        phase_lane(&self.y, l)
+    }
+
+    /// Replaces lane `l`'s state (a renormalisation) and recomputes its slope, as
+    /// [`Dop853::state_changed`] does.
+    pub fn set_state(&mut self, l: usize, y: &Phase<f64, N, K>) {
+        set_phase_lane(&mut self.y, l, y);
+        set_phase_lane(&mut self.f0, l, &rhs(self.ham, y));
+        self.evaluations[l] += 1;
+    }
+
+    /// One accepted step of every lane `l` with `t_end[l]` set, as [`Dop853::step`] takes
+    /// it; the outcome of each such lane (`None` for the others). Inlined, so that a caller
+    /// compiled for a wider instruction set runs the stages in it.
+    #[inline(always)]
+    pub fn step(&mut self, t_end: &[Option<f64>; L]) -> [Option<Result<(), StepFailure>>; L] {
+        let c = self.config;
+        let mut out = [None; L];
+        self.in_kept = [false; L];
+        loop {
+            let mut plans = [None; L];
+            let mut h = Lanes([0.0; L]);
+            for l in 0..L {
+                let Some(end) = t_end[l].filter(|_| out[l].is_none()) else {
+                    continue;
+                };
+                match self.ctl[l].plan(&c, self.t[l], end) {
+                    Ok(plan) => {
+                        h.0[l] = plan.0;
+                        plans[l] = Some((end, plan));
+                    }
+                    Err(e) => out[l] = Some(Err(e)),
+                }
+            }
+            if plans.iter().all(Option::is_none) {
+                return out;
+            }
+            let (y1, e5, e3) = attempt(self.ham, &self.y, &self.f0, h, &mut self.k);
+            let errs = error_norms(&c, (&self.y, &y1), (&e5, &e3), &h);
+            let mut accepted = [false; L];
+            for l in 0..L {
+                let Some((_, plan)) = plans[l] else { continue };
+                self.evaluations[l] += 11;
+                if !errs[l].is_finite() {
+                    out[l] = Some(Err(StepFailure::NonFinite { t: self.t[l] }));
+                } else if self.ctl[l].judge(&c, errs[l], plan) {
+                    accepted[l] = true;
+                }
+            }
+            if !accepted.contains(&true) {
+                continue;
+            }
+            let f1 = rhs(self.ham, &y1);
+            let retry = (0..L).any(|l| plans[l].is_some() && !accepted[l] && out[l].is_none());
+            blend(&mut self.k[12], &f1, &accepted);
+            blend(&mut self.last_y0, &self.y, &accepted);
+            blend(&mut self.last_y1, &y1, &accepted);
+            blend(&mut self.y, &y1, &accepted);
+            blend(&mut self.f0, &f1, &accepted);
+            for l in (0..L).filter(|&l| accepted[l]) {
+                let (end, (h, _, last)) = plans[l].expect("accepted lanes had a plan");
+                self.evaluations[l] += 1;
+                self.last_t[l] = self.t[l];
+                self.last_h[l] = h;
+                self.t_prev[l] = self.t[l];
+                self.t[l] = if last { end } else { self.t[l] + h };
+                out[l] = Some(Ok(()));
+            }
+            if retry {
+                // Another pass will overwrite the stages these lanes' dense output needs.
+                for j in 0..13 {
+                    blend(&mut self.kept[j], &self.k[j], &accepted);
+                }
+                for l in (0..L).filter(|&l| accepted[l]) {
+                    self.in_kept[l] = true;
+                }
+            }
+        }
+    }
+
+    /// The dense output of lane `l`'s last step, as [`Dop853::dense_output`] fills it; valid
+    /// until the next [`Self::step`].
+    pub fn dense_output(&mut self, l: usize, d: &mut Dense<N, K>) {
+        let from = if self.in_kept[l] { &self.kept } else { &self.k };
+        let mut k: [Phase<f64, N, K>; 16] = core::array::from_fn(|j| {
+            if j <= 12 {
+                phase_lane(&from[j], l)
+            } else {
+                Phase::zero()
+            }
+        });
+        let last = LastStep {
+            t: self.last_t[l],
+            h: self.last_h[l],
+            y0: phase_lane(&self.last_y0, l),
+            y1: phase_lane(&self.last_y1, l),
+        };
+        dense_from(self.ham, &last, &mut k, d);
+        self.evaluations[l] += 3;
     }
 }
 

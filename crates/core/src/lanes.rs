@@ -9,10 +9,12 @@
 //! `taylor-dd`, and for f64 Taylor at small τ; DOP853 runs one orbit at a time, through
 //! [`integrate_feed_scalar`] (see [`crate::run::integrate_feed_adaptive`]).
 
+use crate::adaptive::unit_vectors;
 use crate::adaptive::Abandoned;
 use crate::adaptive::{integrate, relative, to_f64_phase, AdaptiveIntegrator, Protocol, Watch};
 use crate::batch::{BatchFeed, Feed, Isa, IDLE_POLL};
-use crate::dop853::StepFailure;
+use crate::dop853::{Dense, Dop853Config, Dop853Lanes, StepFailure};
+use crate::hamiltonian::Hamiltonian;
 use crate::orbit::{OrbitConfig, OrbitResult, Requests};
 use crate::section::Crossing;
 use crate::tangent::Phase;
@@ -99,18 +101,180 @@ impl Future for LaneStep<'_> {
     }
 }
 
-/// One lane of a [`TaylorLanes`] batch as the driver sees an integrator.
-struct LaneOrbit<'b, 'h, H, T: Lanewise, const N: usize, const K: usize, const L: usize> {
-    batch: &'b RefCell<TaylorLanes<'h, H, T, N, K, L>>,
-    slot: &'b Cell<Slot>,
-    lane: usize,
-    ham: &'h H,
-    /// Initial energy, in the lane's precision.
-    h0: T::Lane,
+/// A batch of integrations side by side in SIMD lanes, as the lanes' drivers use it.
+pub trait LaneBatch<const N: usize, const K: usize, const L: usize> {
+    /// The number type of one lane's state.
+    type Lane: Scalar;
+    /// Starts lane `l` afresh from `y` at time 0.
+    fn start(&mut self, l: usize, y: &Phase<Self::Lane, N, K>);
+    /// One step of every lane with `t_end[l]` set, its steps compiled for `isa`.
+    fn step_on(
+        &mut self,
+        isa: Isa,
+        t_end: &[Option<f64>; L],
+    ) -> [Option<Result<(), StepFailure>>; L];
+    fn t(&self, l: usize) -> f64;
+    fn t_prev(&self, l: usize) -> f64;
+    fn steps(&self, l: usize) -> u64;
+    /// Lane `l`'s state rounded to f64.
+    fn state_f64(&self, l: usize) -> Phase<f64, N, K>;
+    /// [`AdaptiveIntegrator::renormalise`] of lane `l`.
+    fn renormalise(&mut self, l: usize) -> f64;
+    /// The energy of lane `l` at its step's end, or at `t` within the step.
+    fn energy(&self, l: usize, at: Option<f64>) -> Self::Lane;
+    /// [`AdaptiveIntegrator::prepare_dense`] of lane `l`.
+    fn prepare_dense(&mut self, _l: usize) {}
+    /// Lane `l`'s state at `t` within its last step, rounded to f64.
+    fn interpolate(&self, l: usize, t: f64) -> Phase<f64, N, K>;
 }
 
 impl<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: usize>
-    AdaptiveIntegrator<N, K> for LaneOrbit<'_, '_, H, T, N, K, L>
+    LaneBatch<N, K, L> for TaylorLanes<'_, H, T, N, K, L>
+{
+    type Lane = T::Lane;
+    fn start(&mut self, l: usize, y: &Phase<T::Lane, N, K>) {
+        TaylorLanes::start(self, l, 0.0, y)
+    }
+    fn step_on(
+        &mut self,
+        isa: Isa,
+        t_end: &[Option<f64>; L],
+    ) -> [Option<Result<(), StepFailure>>; L] {
+        #[cfg(target_arch = "x86_64")]
+        if isa == Isa::Avx512 && isa.available() {
+            // SAFETY: the host has every feature the function is compiled for (checked above).
+            return unsafe { taylor_step_avx512(self, t_end) };
+        }
+        let _ = isa;
+        self.step(t_end)
+    }
+    fn t(&self, l: usize) -> f64 {
+        TaylorLanes::t(self, l)
+    }
+    fn t_prev(&self, l: usize) -> f64 {
+        TaylorLanes::t_prev(self, l)
+    }
+    fn steps(&self, l: usize) -> u64 {
+        TaylorLanes::steps(self, l)
+    }
+    fn state_f64(&self, l: usize) -> Phase<f64, N, K> {
+        TaylorLanes::state_f64(self, l)
+    }
+    fn renormalise(&mut self, l: usize) -> f64 {
+        self.unit_vectors(l)
+    }
+    fn energy(&self, l: usize, at: Option<f64>) -> T::Lane {
+        match at {
+            None => TaylorLanes::energy(self, l),
+            Some(t) => {
+                let y = TaylorLanes::interpolate(self, l, t);
+                self.hamiltonian().energy(&y.q, &y.p)
+            }
+        }
+    }
+    fn interpolate(&self, l: usize, t: f64) -> Phase<f64, N, K> {
+        to_f64_phase(&TaylorLanes::interpolate(self, l, t))
+    }
+}
+
+/// DOP853 lanes with the dense output of each lane's last step, built on demand.
+pub struct Dop853Batch<'h, H, const N: usize, const K: usize, const L: usize> {
+    lanes: Dop853Lanes<'h, H, N, K, L>,
+    dense: [Option<Dense<N, K>>; L],
+    ham: &'h H,
+}
+
+impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
+    Dop853Batch<'h, H, N, K, L>
+{
+    pub fn new(ham: &'h H, config: Dop853Config) -> Self {
+        Dop853Batch {
+            lanes: Dop853Lanes::new(ham, config),
+            dense: [None; L],
+            ham,
+        }
+    }
+}
+
+impl<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize> LaneBatch<N, K, L>
+    for Dop853Batch<'_, H, N, K, L>
+{
+    type Lane = f64;
+    fn start(&mut self, l: usize, y: &Phase<f64, N, K>) {
+        self.lanes.start(l, 0.0, y);
+        self.dense[l] = None;
+    }
+    fn step_on(
+        &mut self,
+        isa: Isa,
+        t_end: &[Option<f64>; L],
+    ) -> [Option<Result<(), StepFailure>>; L] {
+        for (l, end) in t_end.iter().enumerate() {
+            if end.is_some() {
+                self.dense[l] = None;
+            }
+        }
+        #[cfg(target_arch = "x86_64")]
+        if isa == Isa::Avx512 && isa.available() {
+            // SAFETY: the host has every feature the function is compiled for (checked above).
+            return unsafe { dop853_step_avx512(&mut self.lanes, t_end) };
+        }
+        let _ = isa;
+        self.lanes.step(t_end)
+    }
+    fn t(&self, l: usize) -> f64 {
+        self.lanes.t(l)
+    }
+    fn t_prev(&self, l: usize) -> f64 {
+        self.lanes.t_prev(l)
+    }
+    fn steps(&self, l: usize) -> u64 {
+        self.lanes.steps(l)
+    }
+    fn state_f64(&self, l: usize) -> Phase<f64, N, K> {
+        self.lanes.state(l)
+    }
+    fn renormalise(&mut self, l: usize) -> f64 {
+        let mut y = self.lanes.state(l);
+        let length = unit_vectors(&mut y);
+        self.lanes.set_state(l, &y);
+        length
+    }
+    fn energy(&self, l: usize, at: Option<f64>) -> f64 {
+        let y = match at {
+            None => self.lanes.state(l),
+            Some(t) => self.interpolate(l, t),
+        };
+        self.ham.energy(&y.q, &y.p)
+    }
+    fn prepare_dense(&mut self, l: usize) {
+        if self.dense[l].is_none() {
+            let mut d = Dense::empty();
+            self.lanes.dense_output(l, &mut d);
+            self.dense[l] = Some(d);
+        }
+    }
+    fn interpolate(&self, l: usize, t: f64) -> Phase<f64, N, K> {
+        self.dense[l]
+            .as_ref()
+            .expect("interpolate after prepare_dense")
+            .at(t)
+    }
+}
+
+/// One lane of a [`LaneBatch`] as the driver sees an integrator.
+struct LaneOrbit<'b, B, S, const L: usize> {
+    batch: &'b RefCell<B>,
+    slot: &'b Cell<Slot>,
+    lane: usize,
+    /// Initial energy, in the lane's precision.
+    h0: S,
+}
+
+impl<B, const N: usize, const K: usize, const L: usize> AdaptiveIntegrator<N, K>
+    for LaneOrbit<'_, B, <B as LaneBatch<N, K, L>>::Lane, L>
+where
+    B: LaneBatch<N, K, L>,
 {
     fn t(&self) -> f64 {
         self.batch.borrow().t(self.lane)
@@ -119,14 +283,17 @@ impl<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: u
         self.batch.borrow().state_f64(self.lane)
     }
     fn renormalise(&mut self) -> f64 {
-        self.batch.borrow_mut().unit_vectors(self.lane)
+        self.batch.borrow_mut().renormalise(self.lane)
     }
     fn step(&mut self, t_end: f64) -> impl Future<Output = Result<(), StepFailure>> {
         self.slot.set(Slot::Asked(t_end));
         LaneStep { slot: self.slot }
     }
+    fn prepare_dense(&mut self) {
+        self.batch.borrow_mut().prepare_dense(self.lane)
+    }
     fn interpolate(&self, t: f64) -> Phase<f64, N, K> {
-        to_f64_phase(&self.batch.borrow().interpolate(self.lane, t))
+        self.batch.borrow().interpolate(self.lane, t)
     }
     fn t_prev(&self) -> f64 {
         self.batch.borrow().t_prev(self.lane)
@@ -135,20 +302,13 @@ impl<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: u
         self.batch.borrow().steps(self.lane)
     }
     fn energy_error(&self, at: Option<f64>) -> f64 {
-        let batch = self.batch.borrow();
-        let energy = match at {
-            None => batch.energy(self.lane),
-            Some(t) => {
-                let y = batch.interpolate(self.lane, t);
-                self.ham.energy(&y.q, &y.p)
-            }
-        };
+        let energy = self.batch.borrow().energy(self.lane, at);
         relative((energy - self.h0).to_f64(), self.h0.to_f64())
     }
 }
 
-/// What every Taylor lane integrates with.
-pub struct TaylorSetup<'a, H> {
+/// What every lane integrates with.
+pub struct LaneSetup<'a, H> {
     pub ham: &'a H,
     pub delta: f64,
     pub protocol: Protocol,
@@ -172,7 +332,7 @@ pub const TAYLOR_LANES: usize = 4;
 /// [`TaylorOrbit`](crate::adaptive::TaylorOrbit); `start` gives the initial state of the orbit
 /// from (q, p). Hands each result to the feed the moment its orbit ends.
 pub fn integrate_feed_taylor<H, S, const N: usize, const K: usize>(
-    setup: &TaylorSetup<'_, H>,
+    setup: &LaneSetup<'_, H>,
     start: impl Fn([f64; N], [f64; N]) -> Phase<S, N, K>,
     feed: &mut impl BatchFeed<N>,
 ) where
@@ -187,14 +347,47 @@ pub fn integrate_feed_taylor<H, S, const N: usize, const K: usize>(
 /// operations, so the same bits; an `isa` the host lacks falls back to the pinned level).
 pub fn integrate_feed_taylor_on<H, S, const N: usize, const K: usize, const L: usize>(
     isa: Isa,
-    setup: &TaylorSetup<'_, H>,
+    setup: &LaneSetup<'_, H>,
     start: impl Fn([f64; N], [f64; N]) -> Phase<S, N, K>,
     feed: &mut impl BatchFeed<N>,
 ) where
     H: TaylorSeries<N>,
     S: Scalar + Lanewise<Lane = S> + SimdOf<L>,
 {
-    drive::<H, S, <S as SimdOf<L>>::Simd, N, K, L>(isa, setup, &start, feed)
+    let batch = TaylorLanes::<H, <S as SimdOf<L>>::Simd, N, K, L>::new(setup.ham, setup.delta);
+    drive::<_, H, N, K, L>(isa, setup, batch, &start, feed)
+}
+
+/// Lanes per batch of [`integrate_feed_dop853`].
+pub const DOP853_LANES: usize = 4;
+
+/// Integrates the orbits `feed` supplies with DOP853, [`DOP853_LANES`] at a time in SIMD
+/// lanes, each exactly as
+/// [`integrate_adaptive_watched`](crate::adaptive::integrate_adaptive_watched) would with
+/// [`Dop853Orbit`](crate::adaptive::Dop853Orbit). Hands each result to the feed the moment
+/// its orbit ends.
+pub fn integrate_feed_dop853<H: Hamiltonian<N>, const N: usize, const K: usize>(
+    setup: &LaneSetup<'_, H>,
+    start: impl Fn([f64; N], [f64; N]) -> Phase<f64, N, K>,
+    feed: &mut impl BatchFeed<N>,
+) {
+    integrate_feed_dop853_on::<H, N, K, DOP853_LANES>(Isa::detect(), setup, start, feed)
+}
+
+/// [`integrate_feed_dop853`] with `L` lanes, its steps compiled for `isa`.
+pub fn integrate_feed_dop853_on<
+    H: Hamiltonian<N>,
+    const N: usize,
+    const K: usize,
+    const L: usize,
+>(
+    isa: Isa,
+    setup: &LaneSetup<'_, H>,
+    start: impl Fn([f64; N], [f64; N]) -> Phase<f64, N, K>,
+    feed: &mut impl BatchFeed<N>,
+) {
+    let batch = Dop853Batch::<H, N, K, L>::new(setup.ham, Dop853Config::with_delta(setup.delta));
+    drive::<_, H, N, K, L>(isa, setup, batch, &start, feed)
 }
 
 /// The type holding `L` numbers of `Self` in SIMD lanes.
@@ -212,18 +405,18 @@ impl<const L: usize> SimdOf<L> for crate::dd::DoubleDouble {
 
 type LaneFuture<'a, const N: usize> = Pin<Box<dyn Future<Output = OrbitOutcome<N>> + 'a>>;
 
-fn drive<H, S, T, const N: usize, const K: usize, const L: usize>(
+fn drive<B, H, const N: usize, const K: usize, const L: usize>(
     isa: Isa,
-    setup: &TaylorSetup<'_, H>,
-    start: &impl Fn([f64; N], [f64; N]) -> Phase<S, N, K>,
+    setup: &LaneSetup<'_, H>,
+    batch: B,
+    start: &impl Fn([f64; N], [f64; N]) -> Phase<B::Lane, N, K>,
     feed: &mut impl BatchFeed<N>,
 ) where
-    H: TaylorSeries<N>,
-    S: Scalar + Lanewise<Lane = S>,
-    T: Lanewise<Lane = S>,
+    B: LaneBatch<N, K, L>,
+    H: Hamiltonian<N>,
 {
     let ham = setup.ham;
-    let batch = RefCell::new(TaylorLanes::<H, T, N, K, L>::new(ham, setup.delta));
+    let batch = RefCell::new(batch);
     let slots: [Cell<Slot>; L] = core::array::from_fn(|_| Cell::new(Slot::Idle));
     let feed = RefCell::new(feed);
     let mut lanes: [Option<(usize, LaneFuture<'_, N>)>; L] = core::array::from_fn(|_| None);
@@ -257,12 +450,11 @@ fn drive<H, S, T, const N: usize, const K: usize, const L: usize>(
                 match next {
                     Feed::Orbit(id, q, p) => {
                         let y = start(q, p);
-                        batch.borrow_mut().start(l, 0.0, &y);
-                        let integ = LaneOrbit {
+                        batch.borrow_mut().start(l, &y);
+                        let integ = LaneOrbit::<_, _, L> {
                             batch: &batch,
                             slot: &slots[l],
                             lane: l,
-                            ham,
                             h0: ham.energy(&y.q, &y.p),
                         };
                         let watch = FeedWatch { feed: &feed, id };
@@ -304,7 +496,7 @@ fn drive<H, S, T, const N: usize, const K: usize, const L: usize>(
             Slot::Asked(t) => Some(t),
             _ => None,
         });
-        let outcomes = step_on(isa, &mut batch.borrow_mut(), &asked);
+        let outcomes = batch.borrow_mut().step_on(isa, &asked);
         for l in 0..L {
             if let Some(r) = outcomes[l] {
                 slots[l].set(Slot::Done(r));
@@ -315,24 +507,10 @@ fn drive<H, S, T, const N: usize, const K: usize, const L: usize>(
     }
 }
 
-/// [`TaylorLanes::step`] compiled for the instruction set `isa`.
-fn step_on<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: usize>(
-    isa: Isa,
-    batch: &mut TaylorLanes<'_, H, T, N, K, L>,
-    asked: &[Option<f64>; L],
-) -> [Option<Result<(), StepFailure>>; L] {
-    #[cfg(target_arch = "x86_64")]
-    if isa == Isa::Avx512 && isa.available() {
-        // SAFETY: the host has every feature the function is compiled for (checked above).
-        return unsafe { step_avx512(batch, asked) };
-    }
-    let _ = isa;
-    batch.step(asked)
-}
-
+/// [`TaylorLanes::step`] compiled for AVX-512.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx512cd")]
-unsafe fn step_avx512<
+unsafe fn taylor_step_avx512<
     H: TaylorSeries<N>,
     T: Lanewise,
     const N: usize,
@@ -340,6 +518,16 @@ unsafe fn step_avx512<
     const L: usize,
 >(
     batch: &mut TaylorLanes<'_, H, T, N, K, L>,
+    asked: &[Option<f64>; L],
+) -> [Option<Result<(), StepFailure>>; L] {
+    batch.step(asked)
+}
+
+/// [`Dop853Lanes::step`] compiled for AVX-512.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx512cd")]
+unsafe fn dop853_step_avx512<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
+    batch: &mut Dop853Lanes<'_, H, N, K, L>,
     asked: &[Option<f64>; L],
 ) -> [Option<Result<(), StepFailure>>; L] {
     batch.step(asked)

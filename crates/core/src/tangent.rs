@@ -48,24 +48,24 @@ impl<T: Real, const N: usize, const K: usize> Phase<T, N, K> {
 }
 
 /// Component-wise arithmetic on a phase point as one vector of 2N(K + 1) numbers, for the
-/// general-purpose integrators (DOP853, Taylor).
-impl<const N: usize, const K: usize> Phase<f64, N, K> {
+/// general-purpose integrators (DOP853, Taylor), in f64 or in SIMD lanes of it.
+impl<T: Real, const N: usize, const K: usize> Phase<T, N, K> {
     /// self += a·x.
     #[inline(always)]
-    pub fn axpy(&mut self, a: f64, x: &Self) {
+    pub fn axpy(&mut self, a: T, x: &Self) {
         self.zip_mut(x, |s, v| *s = v.mul_add(a, *s));
     }
 
     /// self *= a.
     #[inline(always)]
-    pub fn scale(&mut self, a: f64) {
+    pub fn scale(&mut self, a: T) {
         let copy = *self;
-        self.zip_mut(&copy, |s, _| *s *= a);
+        self.zip_mut(&copy, |s, _| *s = *s * a);
     }
 
     /// Calls `f(self_i, x_i)` on every component pair, mutably.
     #[inline(always)]
-    pub fn zip_mut(&mut self, x: &Self, mut f: impl FnMut(&mut f64, f64)) {
+    pub fn zip_mut(&mut self, x: &Self, mut f: impl FnMut(&mut T, T)) {
         for i in 0..N {
             f(&mut self.q[i], x.q[i]);
             f(&mut self.p[i], x.p[i]);
@@ -80,20 +80,14 @@ impl<const N: usize, const K: usize> Phase<f64, N, K> {
 
     /// Calls `f(self_i, x_i)` on every component pair.
     #[inline(always)]
-    pub fn zip_for_each(&self, x: &Self, mut f: impl FnMut(f64, f64)) {
+    pub fn zip_for_each(&self, x: &Self, mut f: impl FnMut(T, T)) {
         let mut me = *self;
         me.zip_mut(x, |s, v| f(*s, v));
     }
 
     /// Calls `f(self_i, a_i, b_i, c_i)` on every component.
     #[inline(always)]
-    pub fn zip3_for_each(
-        &self,
-        a: &Self,
-        b: &Self,
-        c: &Self,
-        mut f: impl FnMut(f64, f64, f64, f64),
-    ) {
+    pub fn zip3_for_each(&self, a: &Self, b: &Self, c: &Self, mut f: impl FnMut(T, T, T, T)) {
         for i in 0..N {
             f(self.q[i], a.q[i], b.q[i], c.q[i]);
             f(self.p[i], a.p[i], b.p[i], c.p[i]);

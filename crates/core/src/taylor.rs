@@ -800,6 +800,11 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
         self.tests[l] = ReachTest::NONE;
     }
 
+    /// The Hamiltonian integrated.
+    pub fn hamiltonian(&self) -> &'h H {
+        self.ham
+    }
+
     /// The energy of lane `l`'s current state (its orbit, not its deviation vectors, so
     /// renormalising leaves it alone).
     pub fn energy(&self, l: usize) -> T::Lane {

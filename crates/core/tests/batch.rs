@@ -249,7 +249,7 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
     };
     use salient_core::batch::{BatchFeed, Feed, Isa};
     use salient_core::dd::DoubleDouble;
-    use salient_core::lanes::{integrate_feed_taylor_on, SimdOf, TaylorSetup};
+    use salient_core::lanes::{integrate_feed_taylor_on, LaneSetup, SimdOf};
     use salient_core::section::Crossing;
     use salient_core::taylor::{Lanewise, Scalar, Taylor};
     use salient_core::Phase;
@@ -311,7 +311,7 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         let ham = HenonHeiles;
         let ics = ics();
         let config = OrbitConfig::new(tau, 600.0);
-        let setup = TaylorSetup {
+        let setup = LaneSetup {
             ham: &ham,
             delta: 1e-9,
             protocol,
@@ -394,46 +394,59 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
     }
     check::<DoubleDouble, 4>(isas[0], Protocol::Restart, 0.05, crossings);
 
-    // The production entry point: taylor-dd (momenta recomputed in double-double from the
-    // energy) in lanes against `run_adaptive`, orbit by orbit.
+    // The production entry point: each adaptive method (taylor-dd with its momenta recomputed
+    // in double-double from the energy) in lanes or one at a time, as it runs in a grid,
+    // against `run_adaptive`, orbit by orbit.
     use salient_core::method::Method;
-    use salient_core::run::{integrate_feed_adaptive, run_adaptive, MethodRun};
-    let ham = HenonHeiles;
-    let run = MethodRun {
-        method: Method::TaylorDd,
-        delta: Some(1e-7),
-        protocol: Protocol::Restart,
+    use salient_core::run::{
+        adaptive_orbits_per_thread, integrate_feed_adaptive, run_adaptive, MethodRun,
     };
+    let ham = HenonHeiles;
     let on_surface: Vec<_> = (0..24)
         .filter_map(|k| {
             let (q2, p2) = (-0.4 + 0.045 * k as f64, 0.3 - 0.025 * k as f64);
             on_section(&ham, 0.125, &[q2], &[p2]).ok()
         })
         .collect();
-    let config = OrbitConfig::new(0.5, 400.0);
-    let mut feed = Slice {
-        ics: &on_surface,
-        next: 0,
-        asked: 0,
-        got: vec![None; on_surface.len()],
-        polls: vec![0; on_surface.len()],
-        seen: vec![Vec::new(); on_surface.len()],
-    };
-    integrate_feed_adaptive::<_, 2, 2>(&ham, &run, 0.125, &config, &crossings, &mut feed);
-    for (i, &(q, p)) in on_surface.iter().enumerate() {
-        let want = run_adaptive::<_, 2, 2>(
-            &ham,
-            &run,
-            0.125,
-            q,
-            p,
-            &config,
-            &crossings,
-            &mut Polls(i, 0),
-        );
-        match (feed.got[i].as_ref().expect("reported"), &want) {
-            (Ok(a), Ok(b)) => assert!(same_bits(a, b), "orbit {i}:\n{a:?}\n{b:?}"),
-            (a, b) => assert_eq!(a, b, "orbit {i}"),
+    let cases = [
+        (Method::TaylorDd, Protocol::Restart, 0.5),
+        (Method::Taylor, Protocol::Restart, 0.05),
+        (Method::Dop853, Protocol::Restart, 0.05),
+        (Method::Dop853, Protocol::Free, 0.05),
+        (Method::Dop853, Protocol::Restart, 0.5),
+    ];
+    assert!(adaptive_orbits_per_thread(&Method::Dop853, 0.05) > 1);
+    for (method, protocol, tau) in cases {
+        let run = MethodRun {
+            method,
+            delta: Some(1e-7),
+            protocol,
+        };
+        let config = OrbitConfig::new(tau, 400.0);
+        let mut feed = Slice {
+            ics: &on_surface,
+            next: 0,
+            asked: 0,
+            got: vec![None; on_surface.len()],
+            polls: vec![0; on_surface.len()],
+            seen: vec![Vec::new(); on_surface.len()],
+        };
+        integrate_feed_adaptive::<_, 2, 2>(&ham, &run, 0.125, &config, &crossings, &mut feed);
+        for (i, &(q, p)) in on_surface.iter().enumerate() {
+            let want = run_adaptive::<_, 2, 2>(
+                &ham,
+                &run,
+                0.125,
+                q,
+                p,
+                &config,
+                &crossings,
+                &mut Polls(i, 0),
+            );
+            match (feed.got[i].as_ref().expect("reported"), &want) {
+                (Ok(a), Ok(b)) => assert!(same_bits(a, b), "{run:?}, orbit {i}:\n{a:?}\n{b:?}"),
+                (a, b) => assert_eq!(a, b, "{run:?}, orbit {i}"),
+            }
         }
     }
 }

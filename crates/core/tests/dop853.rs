@@ -104,7 +104,7 @@ fn global_error_tracks_the_tolerance() {
         // Twelve evaluations per accepted step, eleven per rejected one, plus start-up.
         assert_eq!(
             d.evaluations,
-            2 + 12 * d.accepted + 11 * (d.rejected + rejected_first(&d))
+            2 + 12 * d.ctl.accepted + 11 * (d.ctl.rejected + rejected_first(&d))
         );
     }
 }

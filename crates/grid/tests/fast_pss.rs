@@ -100,8 +100,8 @@ fn labels_do_not_depend_on_threads_or_window() {
         }
         assert_eq!(cells(&a), cells(&b), "{threads} threads");
     }
-    // Adaptive methods stream one orbit per thread (the Taylor methods a few per thread, in SIMD
-    // lanes: taylor-dd always, f64 Taylor at small τ), claiming crossed cells and abandoning orbits as they go: the labels are those of
+    // Adaptive methods stream one orbit per thread or a few in SIMD lanes (taylor-dd always,
+    // f64 Taylor and DOP853 at small τ), claiming crossed cells and abandoning orbits as they go: the labels are those of
     // the sequential rule (rounds of one cell, the worker's path), with one thread or two.
     let mut dop = run.clone();
     dop.run = MethodRun {
@@ -117,7 +117,10 @@ fn labels_do_not_depend_on_threads_or_window() {
     let mut taylor_lanes = taylor.clone();
     taylor_lanes.config = OrbitConfig::new(0.1, 500.0);
     assert!(adaptive_orbits_per_thread(&Method::Taylor, 0.1) > 1);
-    for adaptive in [&dop, &taylor, &taylor_dd, &taylor_lanes] {
+    let mut dop_lanes = dop.clone();
+    dop_lanes.config = OrbitConfig::new(0.05, 200.0);
+    assert!(adaptive_orbits_per_thread(&Method::Dop853, 0.05) > 1);
+    for adaptive in [&dop, &taylor, &taylor_dd, &taylor_lanes, &dop_lanes] {
         let mut sequential = Ledger::new(&grid, Mode::FastPss);
         while !sequential.done() {
             let next = sequential.needed(1, &|_| false);
