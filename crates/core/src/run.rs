@@ -112,7 +112,9 @@ pub const F64_TAYLOR_LANES_BELOW_TAU: f64 = 0.25;
 /// the lanes' cheaper steps (150 against 236 ns per orbit-step, 100×100, τ = 0.01, t = 1e3,
 /// 1 thread) against the 30 % of their steps that speculation drops. 400×400, t = 1e4,
 /// 2 threads (2026-11-25), one at a time against lanes: τ = 0.5 2.6 against 3.2 s, τ = 0.1
-/// 11.8 against 11.8 s, τ = 0.05 21.2 against 19.3 s, τ = 0.01 103.3 against 85.5 s.
+/// 11.8 against 11.8 s, τ = 0.05 21.2 against 19.3 s, τ = 0.01 103.3 against 85.5 s. The lead
+/// shrinks at longer t_final, as more of the orbits in flight are overtaken (τ = 0.05,
+/// t = 1e5: 149.2 against 147.7 s).
 pub const DOP853_LANES_BELOW_TAU: f64 = 0.1;
 
 /// How many orbits one thread of [`integrate_feed_adaptive`] integrates at once with the
