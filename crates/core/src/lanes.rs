@@ -1,13 +1,12 @@
 //! Adaptive orbits side by side in SIMD lanes. Every lane runs the one-orbit driver of
 //! [`crate::adaptive`] as a future that waits at each of its steps; once every busy lane waits,
-//! the batch ([`TaylorLanes`]) takes one step for all of them at once, and each lane's driver
-//! goes on to its next step. The driver is the scalar one, the batch computes in each lane what
-//! the scalar integrator computes, so every orbit's result is bit-identical to its scalar run.
-//!
-//! Taylor methods only: their step is one fixed sequence of operations whatever its size, so
-//! lanes never diverge in control flow (DOP853 rejects steps lane by lane). In use for
-//! `taylor-dd`, and for f64 Taylor at small τ; DOP853 runs one orbit at a time, through
-//! [`integrate_feed_scalar`] (see [`crate::run::integrate_feed_adaptive`]).
+//! the batch ([`LaneBatch`]: [`TaylorLanes`] or [`Dop853Batch`]) takes one step for all of them
+//! at once, and each lane's driver goes on to its next step. The driver is the scalar one, the
+//! batch computes in each lane what the scalar integrator computes, so every orbit's result is
+//! bit-identical to its scalar run. A Taylor step is one fixed sequence of operations whatever
+//! its size; a DOP853 batch step makes passes until every asked lane has an accepted attempt.
+//! In use for `taylor-dd`, and for f64 Taylor and DOP853 at small τ; otherwise orbits run one
+//! at a time through [`integrate_feed_scalar`] (see [`crate::run::integrate_feed_adaptive`]).
 
 use crate::adaptive::unit_vectors;
 use crate::adaptive::Abandoned;
