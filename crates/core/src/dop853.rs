@@ -715,9 +715,9 @@ pub struct Dop853Lanes<'h, H, const N: usize, const K: usize, const L: usize> {
     kept: Box<[Phase<Lanes<L>, N, K>; 16]>,
     in_kept: [bool; L],
     ctl: [Control; L],
-    /// Each lane's last accepted step: its start time and size, the state it started from and
-    /// the one it reached (kept apart from `y`, which a renormalisation changes).
-    last_t: [f64; L],
+    /// Each lane's last accepted step (which started at `t_prev`): its size, the state it
+    /// started from and the one it reached (kept apart from `y`, which a renormalisation
+    /// changes).
     last_h: [f64; L],
     last_y0: Phase<Lanes<L>, N, K>,
     last_y1: Phase<Lanes<L>, N, K>,
@@ -781,7 +781,6 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             kept: Box::new([Phase::zero(); 16]),
             in_kept: [false; L],
             ctl: [Control::new(); L],
-            last_t: [0.0; L],
             last_h: [0.0; L],
             last_y0: Phase::zero(),
             last_y1: Phase::zero(),
@@ -877,7 +876,6 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             for l in (0..L).filter(|&l| accepted[l]) {
                 let (end, (h, _, last)) = plans[l].expect("accepted lanes had a plan");
                 self.evaluations[l] += 1;
-                self.last_t[l] = self.t[l];
                 self.last_h[l] = h;
                 self.t_prev[l] = self.t[l];
                 self.t[l] = if last { end } else { self.t[l] + h };
@@ -907,7 +905,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             }
         });
         let last = LastStep {
-            t: self.last_t[l],
+            t: self.t_prev[l],
             h: self.last_h[l],
             y0: phase_lane(&self.last_y0, l),
             y1: phase_lane(&self.last_y1, l),
