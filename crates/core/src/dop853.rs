@@ -799,6 +799,11 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         self.evaluations[l] = one.evaluations;
     }
 
+    /// The Hamiltonian integrated.
+    pub fn hamiltonian(&self) -> &'h H {
+        self.ham
+    }
+
     pub fn t(&self, l: usize) -> f64 {
         self.t[l]
     }

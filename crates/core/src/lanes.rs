@@ -180,7 +180,6 @@ impl<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: u
 pub struct Dop853Batch<'h, H, const N: usize, const K: usize, const L: usize> {
     lanes: Dop853Lanes<'h, H, N, K, L>,
     dense: [Option<Dense<N, K>>; L],
-    ham: &'h H,
 }
 
 impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
@@ -190,7 +189,6 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         Dop853Batch {
             lanes: Dop853Lanes::new(ham, config),
             dense: [None; L],
-            ham,
         }
     }
 }
@@ -244,7 +242,7 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize> LaneBatc
             None => self.lanes.state(l),
             Some(t) => self.interpolate(l, t),
         };
-        self.ham.energy(&y.q, &y.p)
+        self.lanes.hamiltonian().energy(&y.q, &y.p)
     }
     fn prepare_dense(&mut self, l: usize) {
         if self.dense[l].is_none() {

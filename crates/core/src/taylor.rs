@@ -379,6 +379,10 @@ impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
         if split > p {
             return;
         }
+        // The lead orders' recursion is written out again rather than shared with the loop
+        // above through a generic helper: the helper wrote each new coefficient once and read
+        // it back for `T`, and the taylor-dd run took 17 % longer (5.2–5.3 against 4.4–4.6 s,
+        // 100×100, τ = 0.01, 1 thread).
         let k0 = split - 1;
         let lead = &mut self.lead;
         for j in 0..=k0 {

@@ -268,6 +268,18 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         polls: Vec<usize>,
         seen: Vec<Vec<Crossing<2>>>,
     }
+    impl<'a> Slice<'a> {
+        fn new(ics: &'a [([f64; 2], [f64; 2])]) -> Self {
+            Slice {
+                ics,
+                next: 0,
+                asked: 0,
+                got: vec![None; ics.len()],
+                polls: vec![0; ics.len()],
+                seen: vec![Vec::new(); ics.len()],
+            }
+        }
+    }
     impl BatchFeed<2> for Slice<'_> {
         fn next(&mut self, all_idle: bool) -> Feed<2> {
             // Now and then nothing for the moment, as the fast-PSS feed answers while the
@@ -327,14 +339,7 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
             ],
             dp: [[S::splat(0.0); 2]; 2],
         };
-        let mut feed = Slice {
-            ics: &ics,
-            next: 0,
-            asked: 0,
-            got: vec![None; ics.len()],
-            polls: vec![0; ics.len()],
-            seen: vec![Vec::new(); ics.len()],
-        };
+        let mut feed = Slice::new(&ics);
         integrate_feed_taylor_on::<_, S, 2, 2, L>(isa, &setup, start, &mut feed);
         let mut statuses = std::collections::HashSet::new();
         let mut abandoned = 0;
@@ -423,14 +428,7 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
             protocol,
         };
         let config = OrbitConfig::new(tau, 400.0);
-        let mut feed = Slice {
-            ics: &on_surface,
-            next: 0,
-            asked: 0,
-            got: vec![None; on_surface.len()],
-            polls: vec![0; on_surface.len()],
-            seen: vec![Vec::new(); on_surface.len()],
-        };
+        let mut feed = Slice::new(&on_surface);
         integrate_feed_adaptive::<_, 2, 2>(&ham, &run, 0.125, &config, &crossings, &mut feed);
         for (i, &(q, p)) in on_surface.iter().enumerate() {
             let want = run_adaptive::<_, 2, 2>(
