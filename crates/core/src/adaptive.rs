@@ -17,7 +17,7 @@ use crate::indicators::{gali, in_band, may_be_aligned, norm2, sali};
 use crate::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Sample, Status,
 };
-use crate::real::dot;
+use crate::real::{dot, Lanes};
 use crate::section::{bracketed_root, Crossing};
 use crate::tangent::Phase;
 use crate::taylor::{Lanewise, Scalar, Taylor, TaylorSeries};
@@ -57,6 +57,18 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     /// scalar integrator steps when called and its future is ready at once; a lane of a SIMD
     /// batch ([`crate::lanes`]) waits until the batch steps.
     fn step(&mut self, t_end: f64) -> impl Future<Output = Result<(), StepFailure>>;
+    /// [`Self::renormalise`] when `renormalise` is set (its factor comes back), then
+    /// [`Self::step`]: one request, so that a SIMD batch renormalises all its lanes at once
+    /// (lane by lane it was an eighth of a run at τ = 0.01).
+    fn renormalise_and_step(
+        &mut self,
+        renormalise: bool,
+        t_end: f64,
+    ) -> impl Future<Output = (Option<f64>, Result<(), StepFailure>)> {
+        let factor = renormalise.then(|| self.renormalise());
+        let step = self.step(t_end);
+        async move { (factor, step.await) }
+    }
     /// Makes the last step's interpolant available to [`Self::interpolate`] and
     /// [`Self::energy_error`]; it is built only when asked for (DOP853's costs 3 evaluations).
     fn prepare_dense(&mut self) {}
@@ -69,6 +81,56 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     /// |H − H0|/|H0| in the integrator's own precision, now or (`Some(t)`) at a time within
     /// the last step.
     fn energy_error(&self, at: Option<f64>) -> f64;
+    /// [`StepEnd::of`] the state rounded to f64, read right after a step (before any
+    /// renormalisation). A SIMD batch forms it for all its lanes at once.
+    fn step_end(&self) -> StepEnd<f64, K> {
+        StepEnd::of(&self.state())
+    }
+}
+
+/// The sums the driver tests after every step, over a state rounded to f64: generic, so that
+/// a SIMD batch forms them for all its lanes at once with each lane's operations the scalar
+/// ones (reading each lane's state and summing it lane by lane was a fifth of a run at
+/// τ = 0.01).
+#[derive(Clone, Copy, Debug)]
+pub struct StepEnd<T, const K: usize> {
+    /// q₁, the section's coordinate.
+    pub q1: T,
+    /// q·q.
+    pub r2: T,
+    /// p·p.
+    pub p2: T,
+    /// |δq_k|² + |δp_k|² of every deviation vector.
+    pub n2: [T; K],
+    /// The inner product of the first two deviation vectors.
+    pub cross: T,
+}
+
+impl<T: crate::real::Real, const K: usize> StepEnd<T, K> {
+    #[inline(always)]
+    pub fn of<const N: usize>(y: &Phase<T, N, K>) -> Self {
+        StepEnd {
+            q1: y.q[0],
+            r2: dot(&y.q, &y.q),
+            p2: dot(&y.p, &y.p),
+            n2: core::array::from_fn(|k| dot(&y.dq[k], &y.dq[k]) + dot(&y.dp[k], &y.dp[k])),
+            cross: dot(&y.dq[0], &y.dq[1]) + dot(&y.dp[0], &y.dp[1]),
+        }
+    }
+}
+
+impl<const K: usize, const L: usize> StepEnd<Lanes<L>, K> {
+    /// Lane `l`'s sums.
+    #[inline(always)]
+    pub fn lane(&self, l: usize) -> StepEnd<f64, K> {
+        StepEnd {
+            q1: self.q1.0[l],
+            r2: self.r2.0[l],
+            p2: self.p2.0[l],
+            n2: self.n2.map(|x| x.0[l]),
+            cross: self.cross.0[l],
+        }
+    }
 }
 
 /// |h − h0| relative to |h0| (absolute when h0 is ~0).
@@ -177,6 +239,50 @@ pub fn unit_deviations<T: Scalar, const N: usize, const K: usize>(
     length0
 }
 
+/// [`unit_deviations`] in every lane of `mask` at once (lane by lane the same operations, so
+/// the same bits); the other lanes keep their vectors. Each lane's factor (1 where unmasked).
+#[inline(always)]
+pub fn unit_deviations_lanes<T, const N: usize, const K: usize, const L: usize>(
+    dq: &mut [[T; N]; K],
+    dp: &mut [[T; N]; K],
+    mask: &[bool; L],
+) -> [f64; L]
+where
+    T: Lanewise + crate::real::Real<Lead = Lanes<L>>,
+{
+    let every = mask.iter().all(|&m| m);
+    let rounded = |x: T| Lanes::<L>::from_fn(|l| x.lane(l).to_f64());
+    let mut length0 = Lanes([1.0; L]);
+    for k in 0..K {
+        // Summed as the scalar sums: left to right over δq then δp, from the first square.
+        let first = rounded(dq[k][0]);
+        let mut n2 = first * first;
+        for x in dq[k][1..].iter().chain(&dp[k]) {
+            let x = rounded(*x);
+            n2 += x * x;
+        }
+        let length = Lanes::<L>::from_fn(|l| n2.0[l].sqrt());
+        let s = Lanes::<L>::from_fn(|l| 1.0 / length.0[l]);
+        if k == 0 {
+            length0 = length;
+        }
+        let st = T::from_lead(s);
+        for v in [&mut dq[k], &mut dp[k]] {
+            for x in v.iter_mut() {
+                let scaled = *x * st;
+                if every {
+                    *x = scaled;
+                } else {
+                    for l in (0..L).filter(|&l| mask[l]) {
+                        x.set_lane(l, scaled.lane(l));
+                    }
+                }
+            }
+        }
+    }
+    core::array::from_fn(|l| if mask[l] { length0.0[l] } else { 1.0 })
+}
+
 /// The Taylor method as an adaptive integrator; the step's polynomial is the dense output.
 pub struct TaylorOrbit<'h, H, T: crate::real::Real, const N: usize, const K: usize> {
     pub inner: Taylor<'h, H, T, N, K>,
@@ -279,13 +385,15 @@ impl<const K: usize> Books<'_, K> {
     fn at_tau<const N: usize>(
         &mut self,
         n: u64,
-        y: &Phase<f64, N, K>,
+        sums: &StepEnd<f64, K>,
+        state: impl Fn() -> Phase<f64, N, K>,
         energy_error: impl FnOnce() -> f64,
         out: &mut OrbitResult<N>,
     ) -> bool {
         let t = n as f64 * self.config.tau;
         if self.next_sample < self.samples.len() && self.samples[self.next_sample] == n {
             self.next_sample += 1;
+            let y = &state();
             out.series.push(Sample {
                 t,
                 sali: sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1])),
@@ -301,27 +409,20 @@ impl<const K: usize> Books<'_, K> {
         let th = self.config.thresholds;
         // The root-free screen first: SALI's three roots and two divisions at every multiple
         // of τ cost 3–4 % of a restart-protocol run at τ = 0.01 (f64 Taylor and taylor-dd).
-        th.early_stop
-            && may_be_aligned(
-                norm2(&y.dq[0], &y.dp[0]),
-                norm2(&y.dq[1], &y.dp[1]),
-                dot(&y.dq[0], &y.dq[1]) + dot(&y.dp[0], &y.dp[1]),
-                th.chaotic,
-            )
-            && sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1])) < th.chaotic
+        th.early_stop && may_be_aligned(sums.n2[0], sums.n2[1], sums.cross, th.chaotic) && {
+            let y = state();
+            sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1])) < th.chaotic
+        }
     }
 
     /// At a step end: escape, non-finite, energy. Returns the status that stops the orbit.
-    fn at_step_end<const N: usize>(
+    fn at_step_end(
         &mut self,
-        y: &Phase<f64, N, K>,
+        sums: &StepEnd<f64, K>,
         energy_error: impl FnOnce() -> f64,
     ) -> Option<Status> {
-        let r2 = dot(&y.q, &y.q);
-        if r2.is_nan()
-            || (0..K).any(|k| !norm2(&y.dq[k], &y.dp[k]).is_finite())
-            || !dot(&y.p, &y.p).is_finite()
-        {
+        let r2 = sums.r2;
+        if r2.is_nan() || sums.n2.iter().any(|x| !x.is_finite()) || !sums.p2.is_finite() {
             return Some(Status::NonFinite);
         }
         // Every step end: an adaptive step costs far more than an energy evaluation.
@@ -529,32 +630,40 @@ where
     let mut n = 0u64;
     // The time the indicators refer to at the end.
     let mut t_end_state = 0.0;
-    let mut end_state = y0;
+    // `None`: the integrator's current state (the restart protocol ends on a step's end and
+    // changes nothing after it, so the state is read once, at the end).
+    let mut end_state = Some(y0);
     let mut q_prev = y0.q;
     // q1 at the last step's end (renormalising leaves q alone).
     let mut q1 = y0.q[0];
     let mut sali_prev = sali((&y0.dq[0], &y0.dp[0]), (&y0.dq[1], &y0.dp[1]));
+    // The renormalisation due at the end of the last step, made with the next step's request.
+    let mut renormalise = false;
 
     'outer: while n < n_final {
         let target = match protocol {
             Protocol::Restart => (n + 1) as f64 * tau,
             Protocol::Free => n_final as f64 * tau,
         };
-        if let Err(e) = integ.step(target).await {
+        let (factor, stepped) = integ.renormalise_and_step(renormalise, target).await;
+        renormalise = false;
+        if let Some(factor) = factor {
+            books.grew(factor);
+        }
+        if let Err(e) = stepped {
             status = match e {
                 StepFailure::StepTooSmall { .. } => Status::StepLimit,
                 StepFailure::NonFinite { .. } => Status::NonFinite,
             };
             break;
         }
-        // The state after the step, read once (a lane of a SIMD batch gathers it).
-        let y = integ.state();
-        if let Some(s) = books.at_step_end(&y, || integ.energy_error(None)) {
+        let sums = integ.step_end();
+        if let Some(s) = books.at_step_end(&sums, || integ.energy_error(None)) {
             status = s;
             break;
         }
-        let q1_before = core::mem::replace(&mut q1, y.q[0]);
-        if requests.crossings && q1_before < 0.0 && y.q[0] >= 0.0 {
+        let q1_before = core::mem::replace(&mut q1, sums.q1);
+        if requests.crossings && q1_before < 0.0 && sums.q1 >= 0.0 {
             let c = locate_dense(integ);
             watch.crossing(&c);
             out.crossings.push(c);
@@ -567,15 +676,16 @@ where
                     // early, but only when a squared norm leaves the band, so short intervals
                     // (the paper's τ ≤ 0.5) keep the protocol bit for bit; the step control
                     // sees the vectors' scale, so where it triggers the steps change.
-                    if (0..K).any(|k| !in_band(norm2(&y.dq[k], &y.dp[k]))) {
+                    if sums.n2.iter().any(|&x| !in_band(x)) {
                         books.grew(integ.renormalise());
                     }
                     continue;
                 }
                 n += 1;
                 t_end_state = n as f64 * tau;
-                end_state = y;
-                if books.at_tau(n, &y, || integ.energy_error(None), &mut out) {
+                end_state = None;
+                let state = || integ.state();
+                if books.at_tau(n, &sums, state, || integ.energy_error(None), &mut out) {
                     status = Status::ChaoticEarlyStop;
                     break;
                 }
@@ -584,7 +694,7 @@ where
                 // The multiples of τ inside this step, through the dense output; only those
                 // that matter: samples, t_final, and those where the early stop could fire.
                 let (t0, t1) = (integ.t_prev(), integ.t());
-                let y1 = y;
+                let y1 = integ.state();
                 let sali1 = sali((&y1.dq[0], &y1.dp[0]), (&y1.dq[1], &y1.dp[1]));
                 // The last multiple of τ in the step, by the same test as the sampling loop had.
                 let mut n_last = ((t1 / tau) as u64).clamp(n, n_final);
@@ -638,8 +748,9 @@ where
                     }
                     let y = at.map_or_else(|| integ.state(), |t| integ.interpolate(t));
                     t_end_state = t;
-                    end_state = y;
-                    if books.at_tau(n, &y, || integ.energy_error(at), &mut out) {
+                    end_state = Some(y);
+                    let sums = StepEnd::of(&y);
+                    if books.at_tau(n, &sums, || y, || integ.energy_error(at), &mut out) {
                         status = Status::ChaoticEarlyStop;
                         break 'outer;
                     }
@@ -647,7 +758,7 @@ where
             }
         }
         if n < n_final {
-            books.grew(integ.renormalise());
+            renormalise = true;
             if integ.steps() % WATCH_POLL == 0 && watch.cancelled() {
                 return Err(Abandoned {
                     steps: integ.steps(),
@@ -662,7 +773,7 @@ where
     if matches!(status, Status::Ok | Status::ChaoticEarlyStop) {
         // The end state was taken before any later renormalisation (none happens once n
         // reaches n_final or the orbit stops), so its scale matches `ln_growth`.
-        let y = end_state;
+        let y = end_state.unwrap_or_else(|| integ.state());
         out.t_reached = t_end_state;
         out.q_end = y.q;
         out.p_end = y.p;
@@ -698,6 +809,78 @@ mod tests {
     use crate::orbit::initial_vectors;
     use crate::section::on_section;
     use crate::Deviation;
+
+    /// The lanes' renormalisation is the scalar one in every masked lane, bit for bit (f64
+    /// and double-double), and leaves the other lanes alone.
+    #[test]
+    fn lanes_renormalise_as_the_scalar_driver_does() {
+        use crate::dd::DoubleDouble;
+        let mut seed = 0.37f64;
+        let mut next = move || {
+            seed = (seed * 3.7 + 0.19).fract();
+            2.0 * seed - 1.0
+        };
+        let masks = [
+            [true; 4],
+            [true, false, true, false],
+            [false, false, false, true],
+        ];
+        for (round, mask) in (0..300).zip(masks.iter().cycle()) {
+            // Vectors of every scale, with components of like size (where a fused sum
+            // would round differently).
+            let scale = 10f64.powi(round % 9 * 4 - 16);
+            let mut next = || scale * next();
+            let words: [[[[f64; 2]; 2]; 2]; 4] = core::array::from_fn(|_| {
+                core::array::from_fn(|_| [[next(), next()], [next(), next()]])
+            });
+            let lo = |x: f64| x * 1e-17;
+            // f64 lanes.
+            let mut dq: [[Lanes<4>; 2]; 2] = core::array::from_fn(|k| {
+                core::array::from_fn(|i| Lanes::from_fn(|l| words[l][0][k][i]))
+            });
+            let mut dp: [[Lanes<4>; 2]; 2] = core::array::from_fn(|k| {
+                core::array::from_fn(|i| Lanes::from_fn(|l| words[l][1][k][i]))
+            });
+            let factors = unit_deviations_lanes(&mut dq, &mut dp, &mask);
+            // Double-double lanes.
+            let dd = |x: f64| DoubleDouble { hi: x, lo: lo(x) };
+            let mut ddq: [[DoubleDouble<Lanes<4>>; 2]; 2] = core::array::from_fn(|k| {
+                core::array::from_fn(|i| DoubleDouble {
+                    hi: Lanes::from_fn(|l| words[l][0][k][i]),
+                    lo: Lanes::from_fn(|l| lo(words[l][0][k][i])),
+                })
+            });
+            let mut ddp: [[DoubleDouble<Lanes<4>>; 2]; 2] = core::array::from_fn(|k| {
+                core::array::from_fn(|i| DoubleDouble {
+                    hi: Lanes::from_fn(|l| words[l][1][k][i]),
+                    lo: Lanes::from_fn(|l| lo(words[l][1][k][i])),
+                })
+            });
+            let dd_factors = unit_deviations_lanes(&mut ddq, &mut ddp, &mask);
+            for l in 0..4 {
+                let (mut q, mut p) = (words[l][0], words[l][1]);
+                let (mut qd, mut pd) = (q.map(|v| v.map(dd)), p.map(|v| v.map(dd)));
+                let f = unit_deviations(&mut q, &mut p);
+                let fd = unit_deviations(&mut qd, &mut pd);
+                if !mask[l] {
+                    (q, p) = (words[l][0], words[l][1]);
+                    (qd, pd) = (q.map(|v| v.map(dd)), p.map(|v| v.map(dd)));
+                }
+                for k in 0..2 {
+                    for i in 0..2 {
+                        assert_eq!(dq[k][i].0[l].to_bits(), q[k][i].to_bits(), "{mask:?}");
+                        assert_eq!(dp[k][i].0[l].to_bits(), p[k][i].to_bits(), "{mask:?}");
+                        assert_eq!(ddq[k][i].lane(l), qd[k][i], "{mask:?}");
+                        assert_eq!(ddp[k][i].lane(l), pd[k][i], "{mask:?}");
+                    }
+                }
+                if mask[l] {
+                    assert_eq!(factors[l].to_bits(), f.to_bits());
+                    assert_eq!(dd_factors[l].to_bits(), fd.to_bits());
+                }
+            }
+        }
+    }
 
     fn start(q2: f64, p2: f64) -> Phase<f64, 2, 2> {
         let (q, p) = on_section(&HenonHeiles, 0.125, &[q2], &[p2]).unwrap();

@@ -721,6 +721,10 @@ pub struct Dop853Lanes<'h, H, const N: usize, const K: usize, const L: usize> {
     last_h: [f64; L],
     last_y0: Phase<Lanes<L>, N, K>,
     last_y1: Phase<Lanes<L>, N, K>,
+    /// The energy of each lane's state.
+    energy: [f64; L],
+    /// The driver's sums over each lane's state after its last step.
+    sums: crate::adaptive::StepEnd<Lanes<L>, K>,
     pub evaluations: [u64; L],
 }
 
@@ -784,6 +788,8 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             last_h: [0.0; L],
             last_y0: Phase::zero(),
             last_y1: Phase::zero(),
+            energy: [0.0; L],
+            sums: crate::adaptive::StepEnd::of(&Phase::<_, N, K>::zero()),
             evaluations: [0; L],
         }
     }
@@ -796,6 +802,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         self.t[l] = t0;
         self.t_prev[l] = t0;
         self.ctl[l] = one.ctl;
+        self.energy[l] = self.ham.energy(&y.q, &y.p);
         self.evaluations[l] = one.evaluations;
     }
 
@@ -828,6 +835,44 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         set_phase_lane(&mut self.y, l, y);
         set_phase_lane(&mut self.f0, l, &rhs(self.ham, y));
         self.evaluations[l] += 1;
+    }
+
+    /// The energy of lane `l`'s state (renormalising leaves it alone).
+    pub fn energy(&self, l: usize) -> f64 {
+        self.energy[l]
+    }
+
+    /// The driver's sums over lane `l`'s state after its last step.
+    pub fn step_end(&self, l: usize) -> crate::adaptive::StepEnd<f64, K> {
+        self.sums.lane(l)
+    }
+
+    /// Every lane of `mask` renormalised as [`crate::adaptive::unit_vectors`] and then
+    /// [`Self::set_state`] would, all at once; each such lane's factor.
+    #[inline(always)]
+    pub fn renormalise(&mut self, mask: &[bool; L]) -> [f64; L] {
+        if !mask.contains(&true) {
+            return [1.0; L];
+        }
+        let factors = crate::adaptive::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask);
+        let f = rhs(self.ham, &self.y);
+        blend(&mut self.f0, &f, mask);
+        for l in (0..L).filter(|&l| mask[l]) {
+            self.evaluations[l] += 1;
+        }
+        factors
+    }
+
+    /// [`Self::renormalise`] of the lanes of `renormalise`, then [`Self::step`].
+    #[inline(always)]
+    #[allow(clippy::type_complexity)]
+    pub fn renormalise_and_step(
+        &mut self,
+        renormalise: &[bool; L],
+        t_end: &[Option<f64>; L],
+    ) -> ([Option<Result<(), StepFailure>>; L], [f64; L]) {
+        let factors = self.renormalise(renormalise);
+        (self.step(t_end), factors)
     }
 
     /// One accepted step of every lane `l` with `t_end[l]` set, as [`Dop853::step`] takes
@@ -878,7 +923,11 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             blend(&mut self.last_y1, &y1, &accepted);
             blend(&mut self.y, &y1, &accepted);
             blend(&mut self.f0, &f1, &accepted);
+            // For all lanes at once: the driver reads them after every step.
+            let energy = self.ham.energy(&y1.q, &y1.p);
+            self.sums = crate::adaptive::StepEnd::of(&self.y);
             for l in (0..L).filter(|&l| accepted[l]) {
+                self.energy[l] = energy.0[l];
                 let (end, (h, _, last)) = plans[l].expect("accepted lanes had a plan");
                 self.evaluations[l] += 1;
                 self.last_h[l] = h;

@@ -8,13 +8,15 @@
 //! In use for `taylor-dd`, and for f64 Taylor and DOP853 at small τ; otherwise orbits run one
 //! at a time through [`integrate_feed_scalar`] (see [`crate::run::integrate_feed_adaptive`]).
 
-use crate::adaptive::unit_vectors;
 use crate::adaptive::Abandoned;
-use crate::adaptive::{integrate, relative, to_f64_phase, AdaptiveIntegrator, Protocol, Watch};
+use crate::adaptive::{
+    integrate, relative, to_f64_phase, AdaptiveIntegrator, Protocol, StepEnd, Watch,
+};
 use crate::batch::{BatchFeed, Feed, Isa, IDLE_POLL};
 use crate::dop853::{Dense, Dop853Config, Dop853Lanes, StepFailure};
 use crate::hamiltonian::Hamiltonian;
 use crate::orbit::{OrbitConfig, OrbitResult, Requests};
+use crate::real::{Lanes, Real};
 use crate::section::Crossing;
 use crate::tangent::Phase;
 use crate::taylor::{Lanewise, Scalar, TaylorLanes, TaylorSeries};
@@ -78,8 +80,10 @@ fn report<const N: usize, F: BatchFeed<N>>(
 #[derive(Clone, Copy, Debug)]
 enum Slot {
     Idle,
-    Asked(f64),
-    Done(Result<(), StepFailure>),
+    /// A step to the time given, after a renormalisation when the flag is set.
+    Asked(f64, bool),
+    /// The step's outcome, and the renormalisation's factor when one was asked.
+    Done(Option<f64>, Result<(), StepFailure>),
 }
 
 /// The future of one lane's step: ready once the batch has answered.
@@ -88,12 +92,12 @@ struct LaneStep<'b> {
 }
 
 impl Future for LaneStep<'_> {
-    type Output = Result<(), StepFailure>;
+    type Output = (Option<f64>, Result<(), StepFailure>);
     fn poll(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<Self::Output> {
         match self.slot.get() {
-            Slot::Done(r) => {
+            Slot::Done(factor, r) => {
                 self.slot.set(Slot::Idle);
-                Poll::Ready(r)
+                Poll::Ready((factor, r))
             }
             _ => Poll::Pending,
         }
@@ -106,17 +110,22 @@ pub trait LaneBatch<const N: usize, const K: usize, const L: usize> {
     type Lane: Scalar;
     /// Starts lane `l` afresh from `y` at time 0.
     fn start(&mut self, l: usize, y: &Phase<Self::Lane, N, K>);
-    /// One step of every lane with `t_end[l]` set, its steps compiled for `isa`.
+    /// One step of every lane with `t_end[l]` set, its steps compiled for `isa`; first the
+    /// lanes with `renormalise[l]` set are renormalised, all at once, and their factors come
+    /// back (each lane's as [`AdaptiveIntegrator::renormalise`] computes it alone).
     fn step_on(
         &mut self,
         isa: Isa,
+        renormalise: &[bool; L],
         t_end: &[Option<f64>; L],
-    ) -> [Option<Result<(), StepFailure>>; L];
+    ) -> ([Option<Result<(), StepFailure>>; L], [f64; L]);
     fn t(&self, l: usize) -> f64;
     fn t_prev(&self, l: usize) -> f64;
     fn steps(&self, l: usize) -> u64;
     /// Lane `l`'s state rounded to f64.
     fn state_f64(&self, l: usize) -> Phase<f64, N, K>;
+    /// [`AdaptiveIntegrator::step_end`] of lane `l`.
+    fn step_end(&self, l: usize) -> StepEnd<f64, K>;
     /// [`AdaptiveIntegrator::renormalise`] of lane `l`.
     fn renormalise(&mut self, l: usize) -> f64;
     /// The energy of lane `l` at its step's end, or at `t` within the step.
@@ -127,8 +136,11 @@ pub trait LaneBatch<const N: usize, const K: usize, const L: usize> {
     fn interpolate(&self, l: usize, t: f64) -> Phase<f64, N, K>;
 }
 
-impl<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: usize>
-    LaneBatch<N, K, L> for TaylorLanes<'_, H, T, N, K, L>
+impl<H, T, const N: usize, const K: usize, const L: usize> LaneBatch<N, K, L>
+    for TaylorLanes<'_, H, T, N, K, L>
+where
+    H: TaylorSeries<N>,
+    T: Lanewise + Real<Lead = Lanes<L>>,
 {
     type Lane = T::Lane;
     fn start(&mut self, l: usize, y: &Phase<T::Lane, N, K>) {
@@ -137,15 +149,16 @@ impl<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: u
     fn step_on(
         &mut self,
         isa: Isa,
+        renormalise: &[bool; L],
         t_end: &[Option<f64>; L],
-    ) -> [Option<Result<(), StepFailure>>; L] {
+    ) -> ([Option<Result<(), StepFailure>>; L], [f64; L]) {
         #[cfg(target_arch = "x86_64")]
         if isa == Isa::Avx512 && isa.available() {
             // SAFETY: the host has every feature the function is compiled for (checked above).
-            return unsafe { taylor_step_avx512(self, t_end) };
+            return unsafe { taylor_step_avx512(self, renormalise, t_end) };
         }
         let _ = isa;
-        self.step(t_end)
+        self.renormalise_and_step(renormalise, t_end)
     }
     fn t(&self, l: usize) -> f64 {
         TaylorLanes::t(self, l)
@@ -159,8 +172,13 @@ impl<H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: u
     fn state_f64(&self, l: usize) -> Phase<f64, N, K> {
         TaylorLanes::state_f64(self, l)
     }
+    fn step_end(&self, l: usize) -> StepEnd<f64, K> {
+        TaylorLanes::step_end(self, l)
+    }
     fn renormalise(&mut self, l: usize) -> f64 {
-        self.unit_vectors(l)
+        let mut mask = [false; L];
+        mask[l] = true;
+        self.unit_vectors(&mask)[l]
     }
     fn energy(&self, l: usize, at: Option<f64>) -> T::Lane {
         match at {
@@ -204,8 +222,9 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize> LaneBatc
     fn step_on(
         &mut self,
         isa: Isa,
+        renormalise: &[bool; L],
         t_end: &[Option<f64>; L],
-    ) -> [Option<Result<(), StepFailure>>; L] {
+    ) -> ([Option<Result<(), StepFailure>>; L], [f64; L]) {
         for (l, end) in t_end.iter().enumerate() {
             if end.is_some() {
                 self.dense[l] = None;
@@ -214,10 +233,10 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize> LaneBatc
         #[cfg(target_arch = "x86_64")]
         if isa == Isa::Avx512 && isa.available() {
             // SAFETY: the host has every feature the function is compiled for (checked above).
-            return unsafe { dop853_step_avx512(&mut self.lanes, t_end) };
+            return unsafe { dop853_step_avx512(&mut self.lanes, renormalise, t_end) };
         }
         let _ = isa;
-        self.lanes.step(t_end)
+        self.lanes.renormalise_and_step(renormalise, t_end)
     }
     fn t(&self, l: usize) -> f64 {
         self.lanes.t(l)
@@ -231,18 +250,22 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize> LaneBatc
     fn state_f64(&self, l: usize) -> Phase<f64, N, K> {
         self.lanes.state(l)
     }
+    fn step_end(&self, l: usize) -> StepEnd<f64, K> {
+        self.lanes.step_end(l)
+    }
     fn renormalise(&mut self, l: usize) -> f64 {
-        let mut y = self.lanes.state(l);
-        let length = unit_vectors(&mut y);
-        self.lanes.set_state(l, &y);
-        length
+        let mut mask = [false; L];
+        mask[l] = true;
+        self.lanes.renormalise(&mask)[l]
     }
     fn energy(&self, l: usize, at: Option<f64>) -> f64 {
-        let y = match at {
-            None => self.lanes.state(l),
-            Some(t) => self.interpolate(l, t),
-        };
-        self.lanes.hamiltonian().energy(&y.q, &y.p)
+        match at {
+            None => self.lanes.energy(l),
+            Some(t) => {
+                let y = self.interpolate(l, t);
+                self.lanes.hamiltonian().energy(&y.q, &y.p)
+            }
+        }
     }
     fn prepare_dense(&mut self, l: usize) {
         if self.dense[l].is_none() {
@@ -283,7 +306,16 @@ where
         self.batch.borrow_mut().renormalise(self.lane)
     }
     fn step(&mut self, t_end: f64) -> impl Future<Output = Result<(), StepFailure>> {
-        self.slot.set(Slot::Asked(t_end));
+        self.slot.set(Slot::Asked(t_end, false));
+        let step = LaneStep { slot: self.slot };
+        async move { step.await.1 }
+    }
+    fn renormalise_and_step(
+        &mut self,
+        renormalise: bool,
+        t_end: f64,
+    ) -> impl Future<Output = (Option<f64>, Result<(), StepFailure>)> {
+        self.slot.set(Slot::Asked(t_end, renormalise));
         LaneStep { slot: self.slot }
     }
     fn prepare_dense(&mut self) {
@@ -297,6 +329,9 @@ where
     }
     fn steps(&self) -> u64 {
         self.batch.borrow().steps(self.lane)
+    }
+    fn step_end(&self) -> StepEnd<f64, K> {
+        self.batch.borrow().step_end(self.lane)
     }
     fn energy_error(&self, at: Option<f64>) -> f64 {
         let energy = self.batch.borrow().energy(self.lane, at);
@@ -389,15 +424,15 @@ pub fn integrate_feed_dop853_on<
 
 /// The type holding `L` numbers of `Self` in SIMD lanes.
 pub trait SimdOf<const L: usize> {
-    type Simd: Lanewise<Lane = Self>;
+    type Simd: Lanewise<Lane = Self> + Real<Lead = Lanes<L>>;
 }
 
 impl<const L: usize> SimdOf<L> for f64 {
-    type Simd = crate::real::Lanes<L>;
+    type Simd = Lanes<L>;
 }
 
 impl<const L: usize> SimdOf<L> for crate::dd::DoubleDouble {
-    type Simd = crate::dd::DoubleDouble<crate::real::Lanes<L>>;
+    type Simd = crate::dd::DoubleDouble<Lanes<L>>;
 }
 
 type LaneFuture<'a, const N: usize> = Pin<Box<dyn Future<Output = OrbitOutcome<N>> + 'a>>;
@@ -427,7 +462,7 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
             lanes[l] = None;
             true
         } else {
-            debug_assert!(matches!(slots[l].get(), Slot::Asked(_)));
+            debug_assert!(matches!(slots[l].get(), Slot::Asked(..)));
             false
         }
     };
@@ -490,13 +525,15 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
         }
         round += 1;
         let asked: [Option<f64>; L] = core::array::from_fn(|l| match slots[l].get() {
-            Slot::Asked(t) => Some(t),
+            Slot::Asked(t, _) => Some(t),
             _ => None,
         });
-        let outcomes = batch.borrow_mut().step_on(isa, &asked);
+        let renormalise: [bool; L] =
+            core::array::from_fn(|l| matches!(slots[l].get(), Slot::Asked(_, true)));
+        let (outcomes, factors) = batch.borrow_mut().step_on(isa, &renormalise, &asked);
         for l in 0..L {
             if let Some(r) = outcomes[l] {
-                slots[l].set(Slot::Done(r));
+                slots[l].set(Slot::Done(renormalise[l].then_some(factors[l]), r));
                 // A lane that frees up asks for work at once (the feed may have some now).
                 waiting &= !poll(l, &mut lanes);
             }
@@ -504,28 +541,28 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
     }
 }
 
-/// [`TaylorLanes::step`] compiled for AVX-512.
+/// [`TaylorLanes::renormalise_and_step`] compiled for AVX-512.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx512cd")]
-unsafe fn taylor_step_avx512<
-    H: TaylorSeries<N>,
-    T: Lanewise,
-    const N: usize,
-    const K: usize,
-    const L: usize,
->(
+unsafe fn taylor_step_avx512<H, T, const N: usize, const K: usize, const L: usize>(
     batch: &mut TaylorLanes<'_, H, T, N, K, L>,
+    renormalise: &[bool; L],
     asked: &[Option<f64>; L],
-) -> [Option<Result<(), StepFailure>>; L] {
-    batch.step(asked)
+) -> ([Option<Result<(), StepFailure>>; L], [f64; L])
+where
+    H: TaylorSeries<N>,
+    T: Lanewise + Real<Lead = Lanes<L>>,
+{
+    batch.renormalise_and_step(renormalise, asked)
 }
 
-/// [`Dop853Lanes::step`] compiled for AVX-512.
+/// [`Dop853Lanes::renormalise_and_step`] compiled for AVX-512.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx512cd")]
 unsafe fn dop853_step_avx512<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
     batch: &mut Dop853Lanes<'_, H, N, K, L>,
+    renormalise: &[bool; L],
     asked: &[Option<f64>; L],
-) -> [Option<Result<(), StepFailure>>; L] {
-    batch.step(asked)
+) -> ([Option<Result<(), StepFailure>>; L], [f64; L]) {
+    batch.renormalise_and_step(renormalise, asked)
 }
