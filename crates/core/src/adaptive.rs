@@ -841,7 +841,7 @@ mod tests {
             let mut dp: [[Lanes<4>; 2]; 2] = core::array::from_fn(|k| {
                 core::array::from_fn(|i| Lanes::from_fn(|l| words[l][1][k][i]))
             });
-            let factors = unit_deviations_lanes(&mut dq, &mut dp, &mask);
+            let factors = unit_deviations_lanes(&mut dq, &mut dp, mask);
             // Double-double lanes.
             let dd = |x: f64| DoubleDouble { hi: x, lo: lo(x) };
             let mut ddq: [[DoubleDouble<Lanes<4>>; 2]; 2] = core::array::from_fn(|k| {
@@ -856,7 +856,7 @@ mod tests {
                     lo: Lanes::from_fn(|l| lo(words[l][1][k][i])),
                 })
             });
-            let dd_factors = unit_deviations_lanes(&mut ddq, &mut ddp, &mask);
+            let dd_factors = unit_deviations_lanes(&mut ddq, &mut ddp, mask);
             for l in 0..4 {
                 let (mut q, mut p) = (words[l][0], words[l][1]);
                 let (mut qd, mut pd) = (q.map(|v| v.map(dd)), p.map(|v| v.map(dd)));
