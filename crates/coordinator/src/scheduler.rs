@@ -36,8 +36,8 @@ pub struct Config {
     pub poll: Duration,
     /// Fast PSS: cells per worker thread in one lease, for tangent-map methods (whose
     /// threads run `executor::LANES` orbits at a time); adaptive methods get it scaled by
-    /// the orbits a thread runs at once (`run::adaptive_orbits_per_thread`: one, or four for
-    /// the Taylor methods in lanes) over `LANES`, at least 1. Small leases are judged on fresher
+    /// the orbits a thread runs at once (`run::adaptive_orbits_per_thread`: one, or the
+    /// lanes of a SIMD batch) over `LANES`, at least 1. Small leases are judged on fresher
     /// claims (less dropped work); large ones cost fewer round trips.
     pub lease_cells_per_thread: usize,
     /// Largest grid (cells in all) a submitted spec may ask for.
@@ -169,6 +169,7 @@ impl Run {
                 m => Some(salient_core::run::adaptive_orbits_per_thread(
                     m,
                     cell_run.config.tau,
+                    cell_run.config.t_final,
                 )),
             },
             tiles: (0..grid.tile_count()).map(|_| Tile::default()).collect(),

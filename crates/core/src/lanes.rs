@@ -348,35 +348,38 @@ pub struct LaneSetup<'a, H> {
     pub requests: &'a Requests,
 }
 
-/// Lanes per batch of [`integrate_feed_taylor`]. More lanes make a step cheaper per orbit but
-/// put more orbits in flight, and in a fast-PSS run every orbit in flight beyond the frontier
-/// may be dropped when an earlier orbit labels its cell. `taylor-dd`, δ = 1e-5, 400×400,
-/// τ = 0.5, t = 1e4, 2 threads (2026-11-24): one orbit per thread 42.3 s; 4 lanes 24.6 s (32 %
-/// of the steps dropped; 27.4 s in AVX2 code); 8 AVX-512 lanes 28.7 s (47 % dropped). With
-/// its high orders in f64 (2026-11-25, `taylor::lead_order`) the step is far cheaper and the
-/// lanes' lead narrower: τ = 0.5 7.5–7.7 s in 4 lanes against 7.75–7.9 s one at a time,
-/// τ = 0.01 88.7 against 113 s.
-pub const TAYLOR_LANES: usize = 4;
+/// Lanes per batch of an adaptive run up to [`FEWER_LANES_ABOVE_T_FINAL`]. More lanes make a
+/// step cheaper per orbit but put more orbits in flight, and in a fast-PSS run every orbit in
+/// flight beyond the frontier may be dropped when an earlier orbit labels its cell. `taylor-dd`,
+/// δ = 1e-5, 400×400, τ = 0.5, t = 1e4, 2 threads (2026-11-24): one orbit per thread 42.3 s;
+/// 4 lanes 24.6 s (32 % of the steps dropped; 27.4 s in AVX2 code); 8 AVX-512 lanes 28.7 s
+/// (47 % dropped). With its high orders in f64 (2026-11-25, `taylor::lead_order`) the step is
+/// far cheaper and the lanes' lead narrower: τ = 0.5 7.5–7.7 s in 4 lanes against 7.75–7.9 s
+/// one at a time, τ = 0.01 88.7 against 113 s.
+pub const LANES: usize = 4;
+
+/// Lanes per batch of an adaptive run past [`FEWER_LANES_ABOVE_T_FINAL`] at τ of at least
+/// [`crate::run::F64_TAYLOR_LANES_BELOW_TAU`] (in practice taylor-dd at τ = 0.5): the longer
+/// the regular orbits run, the more of the orbits in flight an earlier orbit's crossings
+/// overtake late, and where steps are not cut by τ a lane's step saves least. 400×400,
+/// 2 threads (2026-11-25, sixth session), 4 lanes against 2: taylor-dd τ = 0.5, t = 1e5
+/// 61.7 against 49.6 s (46 against 20 % of the steps dropped); f64 Taylor (in lanes for the
+/// measurement) τ = 0.5, t = 1e4 4.70 against 4.96 s, t = 1e5 37.4 against 30.3 s; but at
+/// τ = 0.01, where a lane's step saves most, four stay ahead at t = 1e5 (f64 Taylor 303
+/// against 330 s, 32 against 11 % dropped).
+pub const LONG_RUN_LANES: usize = 2;
+
+/// The t_final above which [`LONG_RUN_LANES`] may replace [`LANES`].
+pub const FEWER_LANES_ABOVE_T_FINAL: f64 = 3e4;
 
 /// Integrates the orbits `feed` supplies with the Taylor method in number type `S` (`f64` or
-/// `DoubleDouble`), [`TAYLOR_LANES`] at a time in SIMD lanes, each exactly as
+/// `DoubleDouble`), `L` at a time in SIMD lanes, each exactly as
 /// [`integrate_adaptive_watched`](crate::adaptive::integrate_adaptive_watched) would with
 /// [`TaylorOrbit`](crate::adaptive::TaylorOrbit); `start` gives the initial state of the orbit
-/// from (q, p). Hands each result to the feed the moment its orbit ends.
-pub fn integrate_feed_taylor<H, S, const N: usize, const K: usize>(
-    setup: &LaneSetup<'_, H>,
-    start: impl Fn([f64; N], [f64; N]) -> Phase<S, N, K>,
-    feed: &mut impl BatchFeed<N>,
-) where
-    H: TaylorSeries<N>,
-    S: Scalar + Lanewise<Lane = S> + SimdOf<TAYLOR_LANES>,
-{
-    integrate_feed_taylor_on::<H, S, N, K, TAYLOR_LANES>(Isa::detect(), setup, start, feed)
-}
-
-/// [`integrate_feed_taylor`] with `L` lanes, its steps compiled for `isa` (AVX-512 where the
-/// host has it: 32 vector registers hold a double-double jet's sums without spilling; the same
-/// operations, so the same bits; an `isa` the host lacks falls back to the pinned level).
+/// from (q, p). Hands each result to the feed the moment its orbit ends. Its steps are
+/// compiled for `isa` (AVX-512 where the host has it: 32 vector registers hold a double-double
+/// jet's sums without spilling; the same operations, so the same bits; an `isa` the host lacks
+/// falls back to the pinned level).
 pub fn integrate_feed_taylor_on<H, S, const N: usize, const K: usize, const L: usize>(
     isa: Isa,
     setup: &LaneSetup<'_, H>,
@@ -390,23 +393,10 @@ pub fn integrate_feed_taylor_on<H, S, const N: usize, const K: usize, const L: u
     drive::<_, H, N, K, L>(isa, setup, batch, &start, feed)
 }
 
-/// Lanes per batch of [`integrate_feed_dop853`].
-pub const DOP853_LANES: usize = 4;
-
-/// Integrates the orbits `feed` supplies with DOP853, [`DOP853_LANES`] at a time in SIMD
-/// lanes, each exactly as
-/// [`integrate_adaptive_watched`](crate::adaptive::integrate_adaptive_watched) would with
-/// [`Dop853Orbit`](crate::adaptive::Dop853Orbit). Hands each result to the feed the moment
-/// its orbit ends.
-pub fn integrate_feed_dop853<H: Hamiltonian<N>, const N: usize, const K: usize>(
-    setup: &LaneSetup<'_, H>,
-    start: impl Fn([f64; N], [f64; N]) -> Phase<f64, N, K>,
-    feed: &mut impl BatchFeed<N>,
-) {
-    integrate_feed_dop853_on::<H, N, K, DOP853_LANES>(Isa::detect(), setup, start, feed)
-}
-
-/// [`integrate_feed_dop853`] with `L` lanes, its steps compiled for `isa`.
+/// Integrates the orbits `feed` supplies with DOP853, `L` at a time in SIMD lanes, each
+/// exactly as [`integrate_adaptive_watched`](crate::adaptive::integrate_adaptive_watched)
+/// would with [`Dop853Orbit`](crate::adaptive::Dop853Orbit), its steps compiled for `isa`.
+/// Hands each result to the feed the moment its orbit ends.
 pub fn integrate_feed_dop853_on<
     H: Hamiltonian<N>,
     const N: usize,

@@ -5,11 +5,12 @@ use crate::adaptive::{
     integrate_adaptive_watched, Abandoned, Dop853Orbit, Protocol, TaylorOrbit, Unwatched, Watch,
 };
 use crate::batch::BatchFeed;
+use crate::batch::Isa;
 use crate::dd::DoubleDouble;
 use crate::dop853::{Dop853, Dop853Config};
 use crate::lanes::{
-    integrate_feed_dop853, integrate_feed_scalar, integrate_feed_taylor, LaneSetup, DOP853_LANES,
-    TAYLOR_LANES,
+    integrate_feed_dop853_on, integrate_feed_scalar, integrate_feed_taylor_on, LaneSetup, SimdOf,
+    FEWER_LANES_ABOVE_T_FINAL, LANES, LONG_RUN_LANES,
 };
 use crate::method::Method;
 use crate::orbit::{initial_vectors, integrate, OrbitConfig, OrbitResult, Requests};
@@ -118,13 +119,21 @@ pub const F64_TAYLOR_LANES_BELOW_TAU: f64 = 0.25;
 pub const DOP853_LANES_BELOW_TAU: f64 = 0.1;
 
 /// How many orbits one thread of [`integrate_feed_adaptive`] integrates at once with the
-/// adaptive `method` at renormalisation interval `tau` (schedulers size their work by it).
-pub fn adaptive_orbits_per_thread(method: &Method, tau: f64) -> usize {
-    match method {
-        Method::TaylorDd => TAYLOR_LANES,
-        Method::Taylor if tau < F64_TAYLOR_LANES_BELOW_TAU => TAYLOR_LANES,
-        Method::Dop853 if tau < DOP853_LANES_BELOW_TAU => DOP853_LANES,
-        _ => 1,
+/// adaptive `method` at renormalisation interval `tau` up to `t_final` (schedulers size their
+/// work by it).
+pub fn adaptive_orbits_per_thread(method: &Method, tau: f64, t_final: f64) -> usize {
+    let in_lanes = match method {
+        Method::TaylorDd => true,
+        Method::Taylor => tau < F64_TAYLOR_LANES_BELOW_TAU,
+        Method::Dop853 => tau < DOP853_LANES_BELOW_TAU,
+        Method::TangentMap(_) => false,
+    };
+    // Long runs at large τ (natural steps, where a lane's step saves least) take fewer lanes.
+    let long = tau >= F64_TAYLOR_LANES_BELOW_TAU && t_final > FEWER_LANES_ABOVE_T_FINAL;
+    match (in_lanes, long) {
+        (false, _) => 1,
+        (true, false) => LANES,
+        (true, true) => LONG_RUN_LANES,
     }
 }
 
@@ -148,27 +157,40 @@ pub fn integrate_feed_adaptive<H: TaylorSeries<N>, const N: usize, const K: usiz
         config,
         requests,
     };
-    let vectors = initial_vectors::<N, K>(config.deviation);
-    match &run.method {
-        Method::TangentMap(_) => panic!("integrate_feed_adaptive is for adaptive methods"),
-        Method::Taylor if adaptive_orbits_per_thread(&run.method, config.tau) > 1 => {
-            let (dq, dp) = vectors;
-            integrate_feed_taylor::<H, f64, N, K>(&setup, |q, p| Phase { q, p, dq, dp }, feed)
-        }
-        Method::Dop853 if adaptive_orbits_per_thread(&run.method, config.tau) > 1 => {
-            let (dq, dp) = vectors;
-            integrate_feed_dop853::<H, N, K>(&setup, |q, p| Phase { q, p, dq, dp }, feed)
-        }
+    match adaptive_orbits_per_thread(&run.method, config.tau, config.t_final) {
+        LANES => in_lanes::<H, N, K, LANES>(&setup, run, energy, feed),
+        LONG_RUN_LANES => in_lanes::<H, N, K, LONG_RUN_LANES>(&setup, run, energy, feed),
         // One orbit at a time: at large τ a step is cheap enough beside the work of a crossing
         // that the orbits lanes put in flight cost more than the lanes save.
-        Method::Dop853 | Method::Taylor => integrate_feed_scalar(feed, |q, p, watch| {
+        _ => integrate_feed_scalar(feed, |q, p, watch| {
             run_adaptive::<H, N, K>(ham, run, energy, q, p, config, requests, watch)
         }),
-        Method::TaylorDd => integrate_feed_taylor::<H, DoubleDouble, N, K>(
-            &setup,
-            |q, p| dd_start(ham, energy, q, p, vectors),
+    }
+}
+
+/// [`integrate_feed_adaptive`] in `L` lanes.
+fn in_lanes<H: TaylorSeries<N>, const N: usize, const K: usize, const L: usize>(
+    setup: &LaneSetup<'_, H>,
+    run: &MethodRun,
+    energy: f64,
+    feed: &mut impl BatchFeed<N>,
+) where
+    f64: SimdOf<L>,
+    DoubleDouble: SimdOf<L>,
+{
+    let isa = Isa::detect();
+    let (dq, dp) = initial_vectors::<N, K>(setup.config.deviation);
+    let start = |q, p| Phase { q, p, dq, dp };
+    match &run.method {
+        Method::Taylor => integrate_feed_taylor_on::<H, f64, N, K, L>(isa, setup, start, feed),
+        Method::Dop853 => integrate_feed_dop853_on::<H, N, K, L>(isa, setup, start, feed),
+        Method::TaylorDd => integrate_feed_taylor_on::<H, DoubleDouble, N, K, L>(
+            isa,
+            setup,
+            |q, p| dd_start(setup.ham, energy, q, p, (dq, dp)),
             feed,
         ),
+        Method::TangentMap(_) => panic!("integrate_feed_adaptive is for adaptive methods"),
     }
 }
 

@@ -402,6 +402,7 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
     // The production entry point: each adaptive method (taylor-dd with its momenta recomputed
     // in double-double from the energy) in lanes or one at a time, as it runs in a grid,
     // against `run_adaptive`, orbit by orbit.
+    use salient_core::lanes::{LANES, LONG_RUN_LANES};
     use salient_core::method::Method;
     use salient_core::run::{
         adaptive_orbits_per_thread, integrate_feed_adaptive, run_adaptive, MethodRun,
@@ -414,20 +415,30 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         })
         .collect();
     let cases = [
-        (Method::TaylorDd, Protocol::Restart, 0.5),
-        (Method::Taylor, Protocol::Restart, 0.05),
-        (Method::Dop853, Protocol::Restart, 0.05),
-        (Method::Dop853, Protocol::Free, 0.05),
-        (Method::Dop853, Protocol::Restart, 0.5),
+        (Method::TaylorDd, Protocol::Restart, 0.5, 400.0),
+        (Method::Taylor, Protocol::Restart, 0.05, 400.0),
+        (Method::Dop853, Protocol::Restart, 0.05, 400.0),
+        (Method::Dop853, Protocol::Free, 0.05, 400.0),
+        (Method::Dop853, Protocol::Restart, 0.5, 400.0),
+        // Long runs take fewer lanes.
+        (Method::TaylorDd, Protocol::Restart, 0.5, 4e4),
     ];
-    assert!(adaptive_orbits_per_thread(&Method::Dop853, 0.05) > 1);
-    for (method, protocol, tau) in cases {
+    assert_eq!(
+        adaptive_orbits_per_thread(&Method::Dop853, 0.05, 400.0),
+        LANES
+    );
+    assert_eq!(adaptive_orbits_per_thread(&Method::Dop853, 0.5, 400.0), 1);
+    assert_eq!(
+        adaptive_orbits_per_thread(&Method::TaylorDd, 0.5, 4e4),
+        LONG_RUN_LANES
+    );
+    for (method, protocol, tau, t_final) in cases {
         let run = MethodRun {
             method,
             delta: Some(1e-7),
             protocol,
         };
-        let config = OrbitConfig::new(tau, 400.0);
+        let config = OrbitConfig::new(tau, t_final);
         let mut feed = Slice::new(&on_surface);
         integrate_feed_adaptive::<_, 2, 2>(&ham, &run, 0.125, &config, &crossings, &mut feed);
         for (i, &(q, p)) in on_surface.iter().enumerate() {

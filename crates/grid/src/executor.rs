@@ -421,7 +421,10 @@ pub fn integrate_cells(grid: &Grid, cell_run: &CellRun, mode: Mode, cells: &[u32
     let map = tangent_map(cell_run);
     // A batched driver fills `lanes` orbits at a time; an adaptive one runs one or a few.
     let per_driver = map.as_ref().map_or_else(
-        || adaptive_orbits_per_thread(&cell_run.run.method, cell_run.config.tau),
+        || {
+            let c = &cell_run.config;
+            adaptive_orbits_per_thread(&cell_run.run.method, c.tau, c.t_final)
+        },
         |m| lanes(mode, m.tau()),
     );
     let cursor = AtomicUsize::new(0);

@@ -116,10 +116,10 @@ fn labels_do_not_depend_on_threads_or_window() {
     taylor_dd.run.method = Method::TaylorDd;
     let mut taylor_lanes = taylor.clone();
     taylor_lanes.config = OrbitConfig::new(0.1, 500.0);
-    assert!(adaptive_orbits_per_thread(&Method::Taylor, 0.1) > 1);
+    assert!(adaptive_orbits_per_thread(&Method::Taylor, 0.1, 500.0) > 1);
     let mut dop_lanes = dop.clone();
     dop_lanes.config = OrbitConfig::new(0.05, 200.0);
-    assert!(adaptive_orbits_per_thread(&Method::Dop853, 0.05) > 1);
+    assert!(adaptive_orbits_per_thread(&Method::Dop853, 0.05, 200.0) > 1);
     for adaptive in [&dop, &taylor, &taylor_dd, &taylor_lanes, &dop_lanes] {
         let mut sequential = Ledger::new(&grid, Mode::FastPss);
         while !sequential.done() {
