@@ -317,6 +317,10 @@ fn attempt<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
     (y1, e5, e3)
 }
 
+/// What a batch's step gives its lanes: each asked lane's outcome (`None` for the others) and
+/// the factor of each lane's renormalisation before it.
+pub type LaneSteps<const L: usize> = ([Option<Result<(), StepFailure>>; L], [f64; L]);
+
 /// Tolerances and controller parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Dop853Config {
@@ -871,12 +875,11 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
 
     /// [`Self::renormalise`] of the lanes of `renormalise`, then [`Self::step`].
     #[inline(always)]
-    #[allow(clippy::type_complexity)]
     pub fn renormalise_and_step(
         &mut self,
         renormalise: &[bool; L],
         t_end: &[Option<f64>; L],
-    ) -> ([Option<Result<(), StepFailure>>; L], [f64; L]) {
+    ) -> LaneSteps<L> {
         let factors = self.renormalise(renormalise);
         (self.step(t_end), factors)
     }

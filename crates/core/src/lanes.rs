@@ -13,7 +13,7 @@ use crate::adaptive::{
     integrate, relative, to_f64_phase, AdaptiveIntegrator, Protocol, StepEnd, Watch,
 };
 use crate::batch::{BatchFeed, Feed, Isa, IDLE_POLL};
-use crate::dop853::{Dense, Dop853Config, Dop853Lanes, StepFailure};
+use crate::dop853::{Dense, Dop853Config, Dop853Lanes, LaneSteps, StepFailure};
 use crate::hamiltonian::Hamiltonian;
 use crate::orbit::{OrbitConfig, OrbitResult, Requests};
 use crate::real::{Lanes, Real};
@@ -118,7 +118,7 @@ pub trait LaneBatch<const N: usize, const K: usize, const L: usize> {
         isa: Isa,
         renormalise: &[bool; L],
         t_end: &[Option<f64>; L],
-    ) -> ([Option<Result<(), StepFailure>>; L], [f64; L]);
+    ) -> LaneSteps<L>;
     fn t(&self, l: usize) -> f64;
     fn t_prev(&self, l: usize) -> f64;
     fn steps(&self, l: usize) -> u64;
@@ -151,7 +151,7 @@ where
         isa: Isa,
         renormalise: &[bool; L],
         t_end: &[Option<f64>; L],
-    ) -> ([Option<Result<(), StepFailure>>; L], [f64; L]) {
+    ) -> LaneSteps<L> {
         #[cfg(target_arch = "x86_64")]
         if isa == Isa::Avx512 && isa.available() {
             // SAFETY: the host has every feature the function is compiled for (checked above).
@@ -224,7 +224,7 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize> LaneBatc
         isa: Isa,
         renormalise: &[bool; L],
         t_end: &[Option<f64>; L],
-    ) -> ([Option<Result<(), StepFailure>>; L], [f64; L]) {
+    ) -> LaneSteps<L> {
         for (l, end) in t_end.iter().enumerate() {
             if end.is_some() {
                 self.dense[l] = None;
@@ -538,7 +538,7 @@ unsafe fn taylor_step_avx512<H, T, const N: usize, const K: usize, const L: usiz
     batch: &mut TaylorLanes<'_, H, T, N, K, L>,
     renormalise: &[bool; L],
     asked: &[Option<f64>; L],
-) -> ([Option<Result<(), StepFailure>>; L], [f64; L])
+) -> LaneSteps<L>
 where
     H: TaylorSeries<N>,
     T: Lanewise + Real<Lead = Lanes<L>>,
@@ -553,6 +553,6 @@ unsafe fn dop853_step_avx512<H: Hamiltonian<N>, const N: usize, const K: usize, 
     batch: &mut Dop853Lanes<'_, H, N, K, L>,
     renormalise: &[bool; L],
     asked: &[Option<f64>; L],
-) -> ([Option<Result<(), StepFailure>>; L], [f64; L]) {
+) -> LaneSteps<L> {
     batch.renormalise_and_step(renormalise, asked)
 }

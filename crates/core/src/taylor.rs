@@ -11,7 +11,7 @@
 //! or several in SIMD lanes ([`TaylorLanes`]).
 
 use crate::dd::DoubleDouble;
-use crate::dop853::StepFailure;
+use crate::dop853::{LaneSteps, StepFailure};
 use crate::hamiltonian::{Hamiltonian, HenonHeiles};
 use crate::real::{Lanes, Real};
 use crate::tangent::Phase;
@@ -858,12 +858,11 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
 
     /// [`Self::unit_vectors`] of the lanes of `renormalise`, then [`Self::step`].
     #[inline(always)]
-    #[allow(clippy::type_complexity)]
     pub fn renormalise_and_step(
         &mut self,
         renormalise: &[bool; L],
         t_end: &[Option<f64>; L],
-    ) -> ([Option<Result<(), StepFailure>>; L], [f64; L])
+    ) -> LaneSteps<L>
     where
         T: Real<Lead = crate::real::Lanes<L>>,
     {
