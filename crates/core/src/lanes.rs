@@ -130,6 +130,11 @@ pub trait LaneBatch<const N: usize, const K: usize, const L: usize> {
     fn renormalise(&mut self, l: usize) -> f64;
     /// The energy of lane `l` at its step's end, or at `t` within the step.
     fn energy(&self, l: usize, at: Option<f64>) -> Self::Lane;
+    /// The energy of lane `l`'s state rounded to f64, where the batch forms it instead of
+    /// [`Self::energy`] at every step (see [`AdaptiveIntegrator::energy_estimate`]).
+    fn energy_f64(&self, _l: usize) -> Option<f64> {
+        None
+    }
     /// [`AdaptiveIntegrator::prepare_dense`] of lane `l`.
     fn prepare_dense(&mut self, _l: usize) {}
     /// Lane `l`'s state at `t` within its last step, rounded to f64.
@@ -179,6 +184,9 @@ where
         let mut mask = [false; L];
         mask[l] = true;
         self.unit_vectors(&mask)[l]
+    }
+    fn energy_f64(&self, l: usize) -> Option<f64> {
+        TaylorLanes::energy_f64(self, l)
     }
     fn energy(&self, l: usize, at: Option<f64>) -> T::Lane {
         match at {
@@ -337,6 +345,11 @@ where
         let energy = self.batch.borrow().energy(self.lane, at);
         relative((energy - self.h0).to_f64(), self.h0.to_f64())
     }
+    fn energy_estimate(&self) -> Option<f64> {
+        let energy = self.batch.borrow().energy_f64(self.lane)?;
+        let h0 = self.h0.to_f64();
+        Some(relative(energy - h0, h0))
+    }
 }
 
 /// What every lane integrates with.
@@ -389,7 +402,10 @@ pub fn integrate_feed_taylor_on<H, S, const N: usize, const K: usize, const L: u
     H: TaylorSeries<N>,
     S: Scalar + Lanewise<Lane = S> + SimdOf<L>,
 {
-    let batch = TaylorLanes::<H, <S as SimdOf<L>>::Simd, N, K, L>::new(setup.ham, setup.delta);
+    let mut batch = TaylorLanes::<H, <S as SimdOf<L>>::Simd, N, K, L>::new(setup.ham, setup.delta);
+    if S::EXTENDED && !setup.requests.energy {
+        batch.screen_energy();
+    }
     drive::<_, H, N, K, L>(isa, setup, batch, &start, feed)
 }
 
