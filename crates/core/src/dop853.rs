@@ -839,14 +839,6 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         phase_lane(&self.y, l)
     }
 
-    /// Replaces lane `l`'s state (a renormalisation) and recomputes its slope, as
-    /// [`Dop853::state_changed`] does.
-    pub fn set_state(&mut self, l: usize, y: &Phase<f64, N, K>) {
-        set_phase_lane(&mut self.y, l, y);
-        set_phase_lane(&mut self.f0, l, &rhs(self.ham, y));
-        self.evaluations[l] += 1;
-    }
-
     /// The energy of lane `l`'s state (renormalising leaves it alone).
     pub fn energy(&self, l: usize) -> f64 {
         self.energy[l]
@@ -857,8 +849,9 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         self.sums.lane(l)
     }
 
-    /// Every lane of `mask` renormalised as [`crate::adaptive::unit_vectors`] and then
-    /// [`Self::set_state`] would, all at once; each such lane's factor.
+    /// Every lane of `mask` renormalised as [`crate::adaptive::unit_vectors`] would, and its
+    /// slope recomputed as [`Dop853::state_changed`] does, all lanes at once; each such lane's
+    /// factor.
     #[inline(always)]
     pub fn renormalise(&mut self, mask: &[bool; L]) -> [f64; L] {
         if !mask.contains(&true) {

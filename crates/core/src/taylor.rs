@@ -890,11 +890,6 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
         (self.step(t_end), factors)
     }
 
-    /// Replaces the state of lane `l` at its current time.
-    pub fn set_state(&mut self, l: usize, y: &Phase<T::Lane, N, K>) {
-        set_phase_lane(&mut self.y, l, y);
-    }
-
     pub fn t(&self, l: usize) -> f64 {
         self.t[l].to_f64()
     }
