@@ -256,6 +256,9 @@ pub fn unit_deviations_lanes<T, const N: usize, const K: usize, const L: usize>(
 where
     T: Lanewise + crate::real::Real<Lead = Lanes<L>>,
 {
+    if !mask.contains(&true) {
+        return [1.0; L];
+    }
     let every = mask.iter().all(|&m| m);
     let rounded = |x: T| Lanes::<L>::from_fn(|l| x.lane(l).to_f64());
     let mut length0 = Lanes([1.0; L]);

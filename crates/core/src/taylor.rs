@@ -870,9 +870,6 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
     where
         T: Real<Lead = crate::real::Lanes<L>>,
     {
-        if !mask.contains(&true) {
-            return [1.0; L];
-        }
         crate::adaptive::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask)
     }
 
@@ -945,11 +942,11 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
             }
         }
         let y = self.jet.eval(h);
-        let energy = if self.energy_f64.is_none() {
-            self.ham.energy(&y.q, &y.p)
-        } else {
-            T::splat(0.0)
-        };
+        // With the screen, the exact energy is formed only when asked (`Self::energy`).
+        let energy = self
+            .energy_f64
+            .is_none()
+            .then(|| self.ham.energy(&y.q, &y.p));
         if go.iter().all(|&g| g) {
             self.y = y;
         } else {
@@ -966,7 +963,9 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
             *e = self.ham.energy(&y64.q, &y64.p).0;
         }
         for l in (0..L).filter(|&l| go[l]) {
-            self.energy[l] = energy.lane(l);
+            if let Some(e) = energy {
+                self.energy[l] = e.lane(l);
+            }
             self.t_prev[l] = self.t[l];
             self.t[l] = if last[l] {
                 T::Lane::splat(t_end[l].expect("asked"))
