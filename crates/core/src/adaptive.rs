@@ -69,6 +69,20 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
         let step = self.step(t_end);
         async move { (factor, step.await) }
     }
+    /// The restart protocol's next request: [`Self::renormalise_and_step`] to the multiple of
+    /// τ after `pace.n`. An integrator that can take the driver's quiet steps itself (a SIMD
+    /// batch, [`crate::lanes`]) may go on through every step that [`quiet_restart_step`]
+    /// accepts under `rules`, advancing `pace` as it does, and come back with the first step
+    /// that needs the driver: the driver's per-step work is then done for all lanes in one
+    /// loop instead of in each lane's future.
+    fn restart_step<'a>(
+        &'a mut self,
+        renormalise: bool,
+        pace: &'a mut Pace,
+        rules: &'a QuietRules,
+    ) -> impl Future<Output = (Option<f64>, Result<(), StepFailure>)> + 'a {
+        self.renormalise_and_step(renormalise, (pace.n + 1) as f64 * rules.tau)
+    }
     /// Makes the last step's interpolant available to [`Self::interpolate`] and
     /// [`Self::energy_error`]; it is built only when asked for (DOP853's costs 3 evaluations).
     fn prepare_dense(&mut self) {}
@@ -353,29 +367,25 @@ pub fn to_f64_phase<T: Scalar, const N: usize, const K: usize>(
     }
 }
 
-/// Bookkeeping at the multiples of τ and at step ends.
-struct Books<'a, const K: usize> {
-    config: &'a OrbitConfig,
-    requests: &'a Requests,
-    r2_max: f64,
+/// The running totals of one orbit that every step may change: a `Copy` value, so that a SIMD
+/// batch can take the restart protocol's quiet steps for the driver ([`quiet_restart_step`])
+/// with the very arithmetic the driver uses.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Tally {
     /// Σ ln of the renormalisation factors of the first vector, but for those in `growth`.
     ln_growth: f64,
     /// The product of the factors since the last fold into `ln_growth`: a logarithm at every
     /// renormalisation was a tenth of an f64 Taylor run at τ = 0.01 in lanes.
     growth: f64,
     energy_max: f64,
-    samples: Vec<u64>,
-    next_sample: usize,
 }
 
-impl<const K: usize> Books<'_, K> {
-    fn mle<const N: usize>(&self, y: &Phase<f64, N, K>, t: f64) -> f64 {
-        if t > 0.0 {
-            (self.ln_growth + self.growth.ln() + 0.5 * norm2(&y.dq[0], &y.dp[0]).ln()) / t
-        } else {
-            0.0
-        }
-    }
+impl Tally {
+    const NEW: Tally = Tally {
+        ln_growth: 0.0,
+        growth: 1.0,
+        energy_max: 0.0,
+    };
 
     /// Takes note of a renormalisation that removed `factor` from the first vector. Factors
     /// are multiplied up and their product's logarithm folded in before it could leave f64's
@@ -390,10 +400,164 @@ impl<const K: usize> Books<'_, K> {
         }
     }
 
+    /// At a step end: escape, non-finite, energy. Returns the status that stops the orbit.
+    #[inline(always)]
+    fn at_step_end<const K: usize>(
+        &mut self,
+        checks: &EndChecks,
+        sums: &StepEnd<f64, K>,
+        estimate: Option<f64>,
+        energy_error: impl FnOnce() -> f64,
+    ) -> Option<Status> {
+        let r2 = sums.r2;
+        if r2.is_nan() || sums.n2.iter().any(|x| !x.is_finite()) || !sums.p2.is_finite() {
+            return Some(Status::NonFinite);
+        }
+        // Every step end: an adaptive step costs far more than an energy evaluation. The
+        // estimate (off the exact error by the rounding of the state, ~1e-16) decides only far
+        // below the threshold, and only when the maximum is not reported.
+        let drift = checks.drift;
+        let e = match estimate {
+            Some(e) if checks.screen && e < 0.5 * drift => e,
+            _ => energy_error(),
+        };
+        if r2 > checks.r2_max {
+            // Left the well by gaining energy: the integration blew up, nothing escaped.
+            #[allow(clippy::neg_cmp_op_on_partial_ord)]
+            return Some(if !(e <= drift) {
+                Status::EnergyDrift
+            } else {
+                Status::Escaped
+            });
+        }
+        self.energy_max = self.energy_max.max(e);
+        if e > drift {
+            return Some(Status::EnergyDrift);
+        }
+        None
+    }
+}
+
+/// What [`Tally::at_step_end`] checks against, fixed for an orbit.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct EndChecks {
+    r2_max: f64,
+    drift: f64,
+    /// Whether an energy estimate may stand in for the exact error: only when the maximum is
+    /// not reported, and against a threshold far above the estimate's rounding.
+    screen: bool,
+}
+
+/// Where a restart-protocol orbit stands after its last step: the multiples of τ reached, q₁
+/// there (for the crossing test) and its totals.
+#[derive(Clone, Copy, Debug)]
+pub struct Pace {
+    pub(crate) n: u64,
+    q1: f64,
+    tally: Tally,
+}
+
+/// What makes a restart-protocol step need the driver, for one request: everything
+/// [`integrate`] tests after such a step besides its totals.
+#[derive(Clone, Copy, Debug)]
+pub struct QuietRules {
+    pub(crate) tau: f64,
+    n_final: u64,
+    /// The multiple of τ of the next sample (u64::MAX: none).
+    next_sample: u64,
+    crossings: bool,
+    /// The early stop's threshold, when the early stop is on.
+    early_stop: Option<f64>,
+    checks: EndChecks,
+}
+
+/// Takes a restart-protocol step that ended at `t` into `pace` when it needs nothing of the
+/// driver but its totals: it reached its multiple of τ, which is neither the last nor a
+/// sample, nor a watch poll; no crossing, no possible early stop, no escape, drift or
+/// non-finite value. The driver's own tests in the driver's order, so a step taken here leaves
+/// the totals bit for bit as the driver would. Returns false, `pace` untouched, otherwise.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(crate) fn quiet_restart_step<const K: usize>(
+    rules: &QuietRules,
+    pace: &mut Pace,
+    factor: Option<f64>,
+    t: f64,
+    steps: u64,
+    sums: &StepEnd<f64, K>,
+    estimate: Option<f64>,
+    energy_error: impl FnOnce() -> f64,
+) -> bool {
+    let n = pace.n + 1;
+    let quiet = n < rules.n_final
+        && n != rules.next_sample
+        && t >= n as f64 * rules.tau
+        && !steps.is_multiple_of(WATCH_POLL)
+        && !(rules.crossings && pace.q1 < 0.0 && sums.q1 >= 0.0)
+        && !rules
+            .early_stop
+            .is_some_and(|th| may_be_aligned(sums.n2[0], sums.n2[1], sums.cross, th));
+    if !quiet {
+        return false;
+    }
+    let mut tally = pace.tally;
+    if let Some(f) = factor {
+        tally.grew(f);
+    }
+    if tally
+        .at_step_end(&rules.checks, sums, estimate, energy_error)
+        .is_some()
+    {
+        return false;
+    }
+    *pace = Pace {
+        n,
+        q1: sums.q1,
+        tally,
+    };
+    true
+}
+
+/// Bookkeeping at the multiples of τ and at step ends.
+struct Books<'a, const K: usize> {
+    config: &'a OrbitConfig,
+    requests: &'a Requests,
+    checks: EndChecks,
+    samples: Vec<u64>,
+    next_sample: usize,
+}
+
+impl<const K: usize> Books<'_, K> {
+    fn mle<const N: usize>(&self, tally: &Tally, y: &Phase<f64, N, K>, t: f64) -> f64 {
+        if t > 0.0 {
+            (tally.ln_growth + tally.growth.ln() + 0.5 * norm2(&y.dq[0], &y.dp[0]).ln()) / t
+        } else {
+            0.0
+        }
+    }
+
+    /// The rules of a quiet restart step for the next request.
+    fn quiet_rules(&self, n_final: u64) -> QuietRules {
+        let th = self.config.thresholds;
+        QuietRules {
+            tau: self.config.tau,
+            n_final,
+            next_sample: self
+                .samples
+                .get(self.next_sample)
+                .copied()
+                .unwrap_or(u64::MAX),
+            crossings: self.requests.crossings,
+            early_stop: th.early_stop.then_some(th.chaotic),
+            checks: self.checks,
+        }
+    }
+
     /// At t = nτ: samples and the early stop. Returns true when the orbit stops.
     fn at_tau<const N: usize>(
         &mut self,
         n: u64,
+        tally: &Tally,
         sums: &StepEnd<f64, K>,
         state: impl Fn() -> Phase<f64, N, K>,
         energy_error: impl FnOnce() -> f64,
@@ -411,7 +575,7 @@ impl<const K: usize> Books<'_, K> {
                 } else {
                     Vec::new()
                 },
-                mle: self.mle(y, t),
+                mle: self.mle(tally, y, t),
                 energy_error: energy_error(),
             });
         }
@@ -422,41 +586,6 @@ impl<const K: usize> Books<'_, K> {
             let y = state();
             sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1])) < th.chaotic
         }
-    }
-
-    /// At a step end: escape, non-finite, energy. Returns the status that stops the orbit.
-    fn at_step_end(
-        &mut self,
-        sums: &StepEnd<f64, K>,
-        estimate: Option<f64>,
-        energy_error: impl FnOnce() -> f64,
-    ) -> Option<Status> {
-        let r2 = sums.r2;
-        if r2.is_nan() || sums.n2.iter().any(|x| !x.is_finite()) || !sums.p2.is_finite() {
-            return Some(Status::NonFinite);
-        }
-        // Every step end: an adaptive step costs far more than an energy evaluation. The
-        // estimate (off the exact error by the rounding of the state, ~1e-16) decides only far
-        // below the threshold, and only when the maximum is not reported.
-        let drift = self.config.thresholds.energy_drift;
-        let e = match estimate {
-            Some(e) if !self.requests.energy && drift >= 1e-10 && e < 0.5 * drift => e,
-            _ => energy_error(),
-        };
-        if r2 > self.r2_max {
-            // Left the well by gaining energy: the integration blew up, nothing escaped.
-            #[allow(clippy::neg_cmp_op_on_partial_ord)]
-            return Some(if !(e <= self.config.thresholds.energy_drift) {
-                Status::EnergyDrift
-            } else {
-                Status::Escaped
-            });
-        }
-        self.energy_max = self.energy_max.max(e);
-        if e > self.config.thresholds.energy_drift {
-            return Some(Status::EnergyDrift);
-        }
-        None
     }
 }
 
@@ -631,40 +760,61 @@ where
     let tau = config.tau;
     let n_final = steps_to(config.t_final, tau);
     let radius = config.escape_radius.unwrap_or_else(|| ham.escape_radius());
+    let drift = config.thresholds.energy_drift;
     let mut books: Books<'_, K> = Books {
         config,
         requests,
-        r2_max: radius * radius,
-        ln_growth: 0.0,
-        growth: 1.0,
-        energy_max: 0.0,
+        checks: EndChecks {
+            r2_max: radius * radius,
+            drift,
+            screen: !requests.energy && drift >= 1e-10,
+        },
         samples: sample_steps(requests.samples_per_decade, n_final),
         next_sample: 0,
     };
     let mut out = OrbitResult::empty();
     let mut status = Status::Ok;
-    let mut n = 0u64;
+    // The multiples of τ reached (`pace.n`), q1 at the last step's end (renormalising leaves q
+    // alone) and the totals.
+    let mut pace = Pace {
+        n: 0,
+        q1: y0.q[0],
+        tally: Tally::NEW,
+    };
     // The time the indicators refer to at the end.
     let mut t_end_state = 0.0;
     // `None`: the integrator's current state (the restart protocol ends on a step's end and
     // changes nothing after it, so the state is read once, at the end).
     let mut end_state = Some(y0);
     let mut q_prev = y0.q;
-    // q1 at the last step's end (renormalising leaves q alone).
-    let mut q1 = y0.q[0];
     let mut sali_prev = sali((&y0.dq[0], &y0.dp[0]), (&y0.dq[1], &y0.dp[1]));
     // The renormalisation due at the end of the last step, made with the next step's request.
     let mut renormalise = false;
 
-    'outer: while n < n_final {
-        let target = match protocol {
-            Protocol::Restart => (n + 1) as f64 * tau,
-            Protocol::Free => n_final as f64 * tau,
+    'outer: while pace.n < n_final {
+        let (target, (factor, stepped)) = match protocol {
+            Protocol::Restart => {
+                let rules = books.quiet_rules(n_final);
+                let n_asked = pace.n;
+                let answer = integ.restart_step(renormalise, &mut pace, &rules).await;
+                if pace.n > n_asked {
+                    // Quiet steps taken for the driver: each ended on its multiple of τ.
+                    t_end_state = pace.n as f64 * tau;
+                    end_state = None;
+                }
+                ((pace.n + 1) as f64 * tau, answer)
+            }
+            Protocol::Free => {
+                let target = n_final as f64 * tau;
+                (
+                    target,
+                    integ.renormalise_and_step(renormalise, target).await,
+                )
+            }
         };
-        let (factor, stepped) = integ.renormalise_and_step(renormalise, target).await;
         renormalise = false;
         if let Some(factor) = factor {
-            books.grew(factor);
+            pace.tally.grew(factor);
         }
         if let Err(e) = stepped {
             status = match e {
@@ -675,11 +825,14 @@ where
         }
         let sums = integ.step_end();
         let estimate = integ.energy_estimate();
-        if let Some(s) = books.at_step_end(&sums, estimate, || integ.energy_error(None)) {
+        if let Some(s) = pace
+            .tally
+            .at_step_end(&books.checks, &sums, estimate, || integ.energy_error(None))
+        {
             status = s;
             break;
         }
-        let q1_before = core::mem::replace(&mut q1, sums.q1);
+        let q1_before = core::mem::replace(&mut pace.q1, sums.q1);
         if requests.crossings && q1_before < 0.0 && sums.q1 >= 0.0 {
             let c = locate_dense(integ);
             watch.crossing(&c);
@@ -694,15 +847,16 @@ where
                     // (the paper's τ ≤ 0.5) keep the protocol bit for bit; the step control
                     // sees the vectors' scale, so where it triggers the steps change.
                     if sums.n2.iter().any(|&x| !in_band(x)) {
-                        books.grew(integ.renormalise());
+                        pace.tally.grew(integ.renormalise());
                     }
                     continue;
                 }
-                n += 1;
-                t_end_state = n as f64 * tau;
+                pace.n += 1;
+                t_end_state = pace.n as f64 * tau;
                 end_state = None;
                 let state = || integ.state();
-                if books.at_tau(n, &sums, state, || integ.energy_error(None), &mut out) {
+                let energy = || integ.energy_error(None);
+                if books.at_tau(pace.n, &pace.tally, &sums, state, energy, &mut out) {
                     status = Status::ChaoticEarlyStop;
                     break;
                 }
@@ -714,11 +868,11 @@ where
                 let y1 = integ.state();
                 let sali1 = sali((&y1.dq[0], &y1.dp[0]), (&y1.dq[1], &y1.dp[1]));
                 // The last multiple of τ in the step, by the same test as the sampling loop had.
-                let mut n_last = ((t1 / tau) as u64).clamp(n, n_final);
+                let mut n_last = ((t1 / tau) as u64).clamp(pace.n, n_final);
                 while n_last < n_final && (n_last + 1) as f64 * tau <= t1 {
                     n_last += 1;
                 }
-                while n_last > n && n_last as f64 * tau > t1 {
+                while n_last > pace.n && n_last as f64 * tau > t1 {
                     n_last -= 1;
                 }
                 let stop_window = if every_tau {
@@ -743,22 +897,22 @@ where
                         (hi / tau).ceil() as u64 + 1,
                     )
                 });
-                while n < n_last {
+                while pace.n < n_last {
                     let mut next = if n_last == n_final { n_final } else { u64::MAX };
                     if let Some(&s) = books.samples.get(books.next_sample) {
                         next = next.min(s);
                     }
                     if let Some((first, last)) = window {
-                        let first = first.max(n + 1);
+                        let first = first.max(pace.n + 1);
                         if first <= last {
                             next = next.min(first);
                         }
                     }
-                    n = next.min(n_last);
+                    pace.n = next.min(n_last);
                     if next > n_last {
                         break;
                     }
-                    let t = n as f64 * tau;
+                    let t = pace.n as f64 * tau;
                     let at = (t != t1).then_some(t);
                     if at.is_some() {
                         integ.prepare_dense();
@@ -767,14 +921,15 @@ where
                     t_end_state = t;
                     end_state = Some(y);
                     let sums = StepEnd::of(&y);
-                    if books.at_tau(n, &sums, || y, || integ.energy_error(at), &mut out) {
+                    let energy = || integ.energy_error(at);
+                    if books.at_tau(pace.n, &pace.tally, &sums, || y, energy, &mut out) {
                         status = Status::ChaoticEarlyStop;
                         break 'outer;
                     }
                 }
             }
         }
-        if n < n_final {
+        if pace.n < n_final {
             renormalise = true;
             if integ.steps() % WATCH_POLL == 0 && watch.cancelled() {
                 return Err(Abandoned {
@@ -786,7 +941,7 @@ where
 
     out.status = status;
     out.steps = integ.steps();
-    out.energy_error_max = requests.energy.then_some(books.energy_max);
+    out.energy_error_max = requests.energy.then_some(pace.tally.energy_max);
     if matches!(status, Status::Ok | Status::ChaoticEarlyStop) {
         // The end state was taken before any later renormalisation (none happens once n
         // reaches n_final or the orbit stops), so its scale matches `ln_growth`.
@@ -795,7 +950,7 @@ where
         out.q_end = y.q;
         out.p_end = y.p;
         out.sali = sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1]));
-        out.mle = books.mle(&y, t_end_state);
+        out.mle = books.mle(&pace.tally, &y, t_end_state);
         out.gali = if requests.gali {
             gali(&y.dq, &y.dp)
         } else {
@@ -956,18 +1111,7 @@ mod tests {
     /// the growth is Σ ln of the factors however large or small they are.
     #[test]
     fn growth_is_the_sum_of_the_logarithms_of_the_factors() {
-        let config = OrbitConfig::new(0.1, 1.0);
-        let requests = Requests::default();
-        let mut books: Books<'_, 2> = Books {
-            config: &config,
-            requests: &requests,
-            r2_max: 1.0,
-            ln_growth: 0.0,
-            growth: 1.0,
-            energy_max: 0.0,
-            samples: Vec::new(),
-            next_sample: 0,
-        };
+        let mut books = Tally::NEW;
         let mut sum = 0.0f64;
         for i in 0..2000 {
             // Runs of large factors, then of small ones, then near-unit ones.

@@ -5,12 +5,16 @@
 //! batch computes in each lane what the scalar integrator computes, so every orbit's result is
 //! bit-identical to its scalar run. A Taylor step is one fixed sequence of operations whatever
 //! its size; a DOP853 batch step makes passes until every asked lane has an accepted attempt.
+//! In the restart protocol the loop around the batch also takes each lane's quiet steps for its
+//! driver ([`quiet_restart_step`]: those that change only the orbit's totals), so a lane's
+//! future wakes only at crossings, samples and the orbit's end, by the driver's own tests.
 //! In use for `taylor-dd`, and for f64 Taylor and DOP853 at small τ; otherwise orbits run one
 //! at a time through [`integrate_feed_scalar`] (see [`crate::run::integrate_feed_adaptive`]).
 
 use crate::adaptive::Abandoned;
 use crate::adaptive::{
-    integrate, relative, to_f64_phase, AdaptiveIntegrator, Protocol, StepEnd, Watch,
+    integrate, quiet_restart_step, relative, to_f64_phase, AdaptiveIntegrator, Pace, Protocol,
+    QuietRules, StepEnd, Watch,
 };
 use crate::batch::{BatchFeed, Feed, Isa, IDLE_POLL};
 use crate::dop853::{Dense, Dop853Config, Dop853Lanes, LaneSteps, StepFailure};
@@ -294,9 +298,34 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize> LaneBatc
 struct LaneOrbit<'b, B, S, const L: usize> {
     batch: &'b RefCell<B>,
     slot: &'b Cell<Slot>,
+    /// While a restart-protocol request is out: the rules under which the batch may take
+    /// quiet steps for the driver, and where the orbit stands after those it took.
+    quiet: &'b Cell<Option<(QuietRules, Pace)>>,
     lane: usize,
     /// Initial energy, in the lane's precision.
     h0: S,
+}
+
+/// [`AdaptiveIntegrator::energy_error`] of lane `l`, whose initial energy was `h0`.
+fn lane_energy_error<B: LaneBatch<N, K, L>, const N: usize, const K: usize, const L: usize>(
+    batch: &B,
+    l: usize,
+    h0: B::Lane,
+    at: Option<f64>,
+) -> f64 {
+    let energy = batch.energy(l, at);
+    relative((energy - h0).to_f64(), h0.to_f64())
+}
+
+/// [`AdaptiveIntegrator::energy_estimate`] of lane `l`, whose initial energy was `h0`.
+fn lane_energy_estimate<B: LaneBatch<N, K, L>, const N: usize, const K: usize, const L: usize>(
+    batch: &B,
+    l: usize,
+    h0: B::Lane,
+) -> Option<f64> {
+    let energy = batch.energy_f64(l)?;
+    let h0 = h0.to_f64();
+    Some(relative(energy - h0, h0))
 }
 
 impl<B, const N: usize, const K: usize, const L: usize> AdaptiveIntegrator<N, K>
@@ -326,6 +355,23 @@ where
         self.slot.set(Slot::Asked(t_end, renormalise));
         LaneStep { slot: self.slot }
     }
+    fn restart_step<'a>(
+        &'a mut self,
+        renormalise: bool,
+        pace: &'a mut Pace,
+        rules: &'a QuietRules,
+    ) -> impl Future<Output = (Option<f64>, Result<(), StepFailure>)> + 'a {
+        self.quiet.set(Some((*rules, *pace)));
+        let quiet = self.quiet;
+        let step = self.renormalise_and_step(renormalise, (pace.n + 1) as f64 * rules.tau);
+        async move {
+            let answer = step.await;
+            if let Some((_, advanced)) = quiet.take() {
+                *pace = advanced;
+            }
+            answer
+        }
+    }
     fn prepare_dense(&mut self) {
         self.batch.borrow_mut().prepare_dense(self.lane)
     }
@@ -342,13 +388,10 @@ where
         self.batch.borrow().step_end(self.lane)
     }
     fn energy_error(&self, at: Option<f64>) -> f64 {
-        let energy = self.batch.borrow().energy(self.lane, at);
-        relative((energy - self.h0).to_f64(), self.h0.to_f64())
+        lane_energy_error(&*self.batch.borrow(), self.lane, self.h0, at)
     }
     fn energy_estimate(&self) -> Option<f64> {
-        let energy = self.batch.borrow().energy_f64(self.lane)?;
-        let h0 = self.h0.to_f64();
-        Some(relative(energy - h0, h0))
+        lane_energy_estimate(&*self.batch.borrow(), self.lane, self.h0)
     }
 }
 
@@ -456,6 +499,8 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
     let ham = setup.ham;
     let batch = RefCell::new(batch);
     let slots: [Cell<Slot>; L] = core::array::from_fn(|_| Cell::new(Slot::Idle));
+    let quiet: [Cell<Option<(QuietRules, Pace)>>; L] = core::array::from_fn(|_| Cell::new(None));
+    let mut h0s: [Option<B::Lane>; L] = [None; L];
     let feed = RefCell::new(feed);
     let mut lanes: [Option<(usize, LaneFuture<'_, N>)>; L] = core::array::from_fn(|_| None);
     let mut context = Context::from_waker(Waker::noop());
@@ -489,11 +534,15 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
                     Feed::Orbit(id, q, p) => {
                         let y = start(q, p);
                         batch.borrow_mut().start(l, &y);
+                        let h0 = ham.energy(&y.q, &y.p);
+                        h0s[l] = Some(h0);
+                        quiet[l].set(None);
                         let integ = LaneOrbit::<_, _, L> {
                             batch: &batch,
                             slot: &slots[l],
+                            quiet: &quiet[l],
                             lane: l,
-                            h0: ham.energy(&y.q, &y.p),
+                            h0,
                         };
                         let watch = FeedWatch { feed: &feed, id };
                         let (protocol, config, requests) =
@@ -538,11 +587,32 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
             core::array::from_fn(|l| matches!(slots[l].get(), Slot::Asked(_, true)));
         let (outcomes, factors) = batch.borrow_mut().step_on(isa, &renormalise, &asked);
         for l in 0..L {
-            if let Some(r) = outcomes[l] {
-                slots[l].set(Slot::Done(renormalise[l].then_some(factors[l]), r));
-                // A lane that frees up asks for work at once (the feed may have some now).
-                waiting &= !poll(l, &mut lanes);
+            let Some(r) = outcomes[l] else { continue };
+            let factor = renormalise[l].then_some(factors[l]);
+            // A quiet restart step is the driver's too, taken here: the lane asks for its
+            // next step without waking its future (the driver's per-step work in each lane's
+            // future was a third of an f64 Taylor run at τ = 0.01).
+            if let (Ok(()), Some((rules, mut pace)), Some(h0)) = (r, quiet[l].get(), h0s[l]) {
+                let b = batch.borrow();
+                let b = &*b;
+                if quiet_restart_step(
+                    &rules,
+                    &mut pace,
+                    factor,
+                    b.t(l),
+                    b.steps(l),
+                    &b.step_end(l),
+                    lane_energy_estimate(b, l, h0),
+                    || lane_energy_error(b, l, h0, None),
+                ) {
+                    quiet[l].set(Some((rules, pace)));
+                    slots[l].set(Slot::Asked((pace.n + 1) as f64 * rules.tau, true));
+                    continue;
+                }
             }
+            slots[l].set(Slot::Done(factor, r));
+            // A lane that frees up asks for work at once (the feed may have some now).
+            waiting &= !poll(l, &mut lanes);
         }
     }
 }
