@@ -474,8 +474,9 @@ pub struct QuietRules {
 /// Takes a restart-protocol step that ended at `t` into `pace` when it needs nothing of the
 /// driver but its totals: it reached its multiple of τ, which is neither the last nor a
 /// sample, nor a watch poll; no crossing, no possible early stop, no escape, drift or
-/// non-finite value. The driver's own tests in the driver's order, so a step taken here leaves
-/// the totals bit for bit as the driver would. Returns false, `pace` untouched, otherwise.
+/// non-finite value. The tests are the driver's own (the cheap ones first; the totals through
+/// the driver's [`Tally`]), so a step taken here leaves the totals bit for bit as the driver
+/// would. Returns false, `pace` untouched, otherwise.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 pub(crate) fn quiet_restart_step<const K: usize>(
