@@ -1112,7 +1112,7 @@ mod tests {
     /// the growth is Σ ln of the factors however large or small they are.
     #[test]
     fn growth_is_the_sum_of_the_logarithms_of_the_factors() {
-        let mut books = Tally::NEW;
+        let mut tally = Tally::NEW;
         let mut sum = 0.0f64;
         for i in 0..2000 {
             // Runs of large factors, then of small ones, then near-unit ones.
@@ -1121,11 +1121,11 @@ mod tests {
                 1 => 1e-37 / (1.0 + i as f64 * 1e-3),
                 _ => 1.0 + ((i * 7919) % 13) as f64 * 1e-4,
             };
-            books.grew(factor);
+            tally.grew(factor);
             sum += factor.ln();
-            assert!(books.growth.is_finite() && books.growth > 0.0, "{i}");
+            assert!(tally.growth.is_finite() && tally.growth > 0.0, "{i}");
         }
-        let total = books.ln_growth + books.growth.ln();
+        let total = tally.ln_growth + tally.growth.ln();
         assert!(
             (total - sum).abs() <= 1e-12 * sum.abs().max(1.0),
             "{total} vs {sum}"
