@@ -7,7 +7,8 @@
 //! its size; a DOP853 batch step makes passes until every asked lane has an accepted attempt.
 //! In the restart protocol the loop around the batch also takes each lane's quiet steps for its
 //! driver ([`quiet_restart_step`]: those that change only the orbit's totals), so a lane's
-//! future wakes only at crossings, samples and the orbit's end, by the driver's own tests.
+//! future wakes only for the steps its driver's own tests pick out: crossings, samples, watch
+//! polls, possible early stops, failures and the orbit's last step.
 //! In use for `taylor-dd`, and for f64 Taylor and DOP853 at small τ; otherwise orbits run one
 //! at a time through [`integrate_feed_scalar`] (see [`crate::run::integrate_feed_adaptive`]).
 
@@ -298,11 +299,21 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize> LaneBatc
 struct LaneOrbit<'b, B, S, const L: usize> {
     batch: &'b RefCell<B>,
     slot: &'b Cell<Slot>,
-    /// While a restart-protocol request is out: the rules under which the batch may take
-    /// quiet steps for the driver, and where the orbit stands after those it took.
-    quiet: &'b Cell<Option<(QuietRules, Pace)>>,
+    /// While a restart-protocol request is out, what the loop around the batch needs to take
+    /// quiet steps for the driver.
+    quiet: &'b Cell<Option<QuietRequest<S>>>,
     lane: usize,
     /// Initial energy, in the lane's precision.
+    h0: S,
+}
+
+/// A lane's restart-protocol request as the loop around the batch sees it: the rules under
+/// which it may take quiet steps for the driver, where the orbit stands after those it took,
+/// and the orbit's initial energy (for the energy checks).
+#[derive(Clone, Copy)]
+struct QuietRequest<S> {
+    rules: QuietRules,
+    pace: Pace,
     h0: S,
 }
 
@@ -361,13 +372,17 @@ where
         pace: &'a mut Pace,
         rules: &'a QuietRules,
     ) -> impl Future<Output = (Option<f64>, Result<(), StepFailure>)> + 'a {
-        self.quiet.set(Some((*rules, *pace)));
+        self.quiet.set(Some(QuietRequest {
+            rules: *rules,
+            pace: *pace,
+            h0: self.h0,
+        }));
         let quiet = self.quiet;
         let step = self.renormalise_and_step(renormalise, (pace.n + 1) as f64 * rules.tau);
         async move {
             let answer = step.await;
-            if let Some((_, advanced)) = quiet.take() {
-                *pace = advanced;
+            if let Some(request) = quiet.take() {
+                *pace = request.pace;
             }
             answer
         }
@@ -499,8 +514,7 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
     let ham = setup.ham;
     let batch = RefCell::new(batch);
     let slots: [Cell<Slot>; L] = core::array::from_fn(|_| Cell::new(Slot::Idle));
-    let quiet: [Cell<Option<(QuietRules, Pace)>>; L] = core::array::from_fn(|_| Cell::new(None));
-    let mut h0s: [Option<B::Lane>; L] = [None; L];
+    let quiet: [Cell<Option<QuietRequest<B::Lane>>>; L] = core::array::from_fn(|_| Cell::new(None));
     let feed = RefCell::new(feed);
     let mut lanes: [Option<(usize, LaneFuture<'_, N>)>; L] = core::array::from_fn(|_| None);
     let mut context = Context::from_waker(Waker::noop());
@@ -534,15 +548,13 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
                     Feed::Orbit(id, q, p) => {
                         let y = start(q, p);
                         batch.borrow_mut().start(l, &y);
-                        let h0 = ham.energy(&y.q, &y.p);
-                        h0s[l] = Some(h0);
                         quiet[l].set(None);
                         let integ = LaneOrbit::<_, _, L> {
                             batch: &batch,
                             slot: &slots[l],
                             quiet: &quiet[l],
                             lane: l,
-                            h0,
+                            h0: ham.energy(&y.q, &y.p),
                         };
                         let watch = FeedWatch { feed: &feed, id };
                         let (protocol, config, requests) =
@@ -592,12 +604,12 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
             // A quiet restart step is the driver's too, taken here: the lane asks for its
             // next step without waking its future (the driver's per-step work in each lane's
             // future was a third of an f64 Taylor run at τ = 0.01).
-            if let (Ok(()), Some((rules, mut pace)), Some(h0)) = (r, quiet[l].get(), h0s[l]) {
+            if let (Ok(()), Some(mut request)) = (r, quiet[l].get()) {
                 let b = batch.borrow();
-                let b = &*b;
+                let (b, h0) = (&*b, request.h0);
                 if quiet_restart_step(
-                    &rules,
-                    &mut pace,
+                    &request.rules,
+                    &mut request.pace,
                     factor,
                     b.t(l),
                     b.steps(l),
@@ -605,8 +617,9 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
                     lane_energy_estimate(b, l, h0),
                     || lane_energy_error(b, l, h0, None),
                 ) {
-                    quiet[l].set(Some((rules, pace)));
-                    slots[l].set(Slot::Asked((pace.n + 1) as f64 * rules.tau, true));
+                    let next = (request.pace.n + 1) as f64 * request.rules.tau;
+                    quiet[l].set(Some(request));
+                    slots[l].set(Slot::Asked(next, true));
                     continue;
                 }
             }
