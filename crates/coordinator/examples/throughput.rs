@@ -84,6 +84,12 @@ fn main() {
             t_end: 1e4,
         }
     };
+    // Fabricated before the clock starts: sorting a visited list is a worker's work, and was a
+    // tenth of this process's CPU when it was done per report.
+    let mut fakes: Vec<Option<v1::Outcome>> = vec![None; grid.cells()];
+    for &c in &compatible {
+        fakes[c as usize] = Some(fake(c));
+    }
     let mut held: Vec<Option<v1::Lease>> = vec![None; workers.len()];
     // Each worker's relay marks, sent back with every poll as a real worker does: without
     // them every poll would be answered with the run's relay log from its start.
@@ -106,7 +112,15 @@ fn main() {
                 reports += 1;
                 v1::TileReport {
                     lease: Some(tile),
-                    outcomes: l.cells.iter().map(|&c| fake(c)).collect(),
+                    outcomes: l
+                        .cells
+                        .iter()
+                        .map(|&c| {
+                            fakes[c as usize]
+                                .clone()
+                                .expect("leased cells are compatible")
+                        })
+                        .collect(),
                     finished: true,
                     ..Default::default()
                 }

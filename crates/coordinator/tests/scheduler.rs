@@ -66,9 +66,7 @@ fn labels(s: &Scheduler, job: u64) -> Vec<Vec<Option<Label>>> {
         .iter()
         .map(|l| {
             assert!(l.done());
-            (0..grid.cells() as u32)
-                .map(|c| l.label(c).copied())
-                .collect()
+            (0..grid.cells() as u32).map(|c| l.label(c)).collect()
         })
         .collect()
 }
@@ -79,9 +77,7 @@ fn embedded(json: &str) -> Vec<Vec<Option<Label>>> {
     (0..spec.runs.len())
         .map(|i| {
             let l = run_embedded(&grid, &spec.cell_run(i), spec.grid.mode, 8, |_| {});
-            (0..grid.cells() as u32)
-                .map(|c| l.label(c).copied())
-                .collect()
+            (0..grid.cells() as u32).map(|c| l.label(c)).collect()
         })
         .collect()
 }

@@ -61,10 +61,12 @@ pub struct Ledger {
     canonical: Vec<u32>,
     position: Vec<u32>,
     /// Per cell: [`COMPATIBLE`], [`LABELLED`] and [`PENDING`]. The hot checks read these
-    /// bytes (160 kB at 400×400, cache-resident) instead of `labels` (5 MB): a commit visits
-    /// ~100 cells, and a cache miss on each was most of its cost.
+    /// bytes (160 kB at 400×400, cache-resident): a commit visits ~100 cells, and a cache
+    /// miss on each was most of its cost.
     flags: Vec<u8>,
-    labels: Vec<Option<Label>>,
+    /// Per labelled cell, the index in `committed` of the outcome that labelled it (`u32::MAX`:
+    /// none). A commit writes 4 bytes per cell it labels rather than a copy of the label.
+    labelled_by: Vec<u32>,
     /// Labels set so far (progress reporting asks after every batch; counting would scan the grid).
     resolved: usize,
     /// Next canonical position to commit.
@@ -77,11 +79,11 @@ pub struct Ledger {
     pub committed_steps: u64,
     /// Cells labelled since the last [`Ledger::take_newly_labelled`].
     newly_labelled: Vec<u32>,
-    /// Fast PSS: for an unlabelled cell, the canonical positions of pending outcomes whose
-    /// crossings fell in it.
-    /// Indexed by cell; an empty Vec does not allocate, and indexing beats hashing on the
-    /// coordinator's hot path (measured: a third of its CPU was this bookkeeping).
-    claimers: Vec<Vec<u32>>,
+    /// Fast PSS: per cell, how many pending outcomes before it in canonical order crossed it.
+    /// A count answers [`Ledger::is_claimed`], the only question asked of the claims, and
+    /// costs one increment and one decrement per visited cell (a list of claimers per cell
+    /// cost an allocation, a search and scattered reads: a quarter of the coordinator's CPU).
+    early_claims: Vec<u32>,
     /// Cells whose [`Ledger::is_claimed`] may have changed since the last
     /// [`Ledger::drain_claim_changes`]; kept only after [`Ledger::track_claim_changes`].
     claim_changes: Option<Vec<u32>>,
@@ -101,7 +103,7 @@ impl Ledger {
             flags: (0..cells as u32)
                 .map(|c| if grid.is_compatible(c) { COMPATIBLE } else { 0 })
                 .collect(),
-            labels: vec![None; cells],
+            labelled_by: vec![u32::MAX; cells],
             resolved: 0,
             next: 0,
             pending: BTreeMap::new(),
@@ -110,7 +112,7 @@ impl Ledger {
             dropped_steps: 0,
             committed_steps: 0,
             newly_labelled: Vec::new(),
-            claimers: vec![Vec::new(); cells],
+            early_claims: vec![0; cells],
             claim_changes: None,
             reopened: 0,
         }
@@ -120,8 +122,17 @@ impl Ledger {
         self.mode
     }
 
-    pub fn label(&self, cell: u32) -> Option<&Label> {
-        self.labels[cell as usize].as_ref()
+    pub fn label(&self, cell: u32) -> Option<Label> {
+        let o = self
+            .committed
+            .get(self.labelled_by[cell as usize] as usize)?;
+        Some(Label {
+            class: o.class,
+            status: o.status,
+            sali: o.sali,
+            source: o.cell,
+            t_end: o.t_end,
+        })
     }
 
     pub fn is_labelled(&self, cell: u32) -> bool {
@@ -168,8 +179,7 @@ impl Ledger {
     /// frontier cell is never claimed (every pending outcome lies after it), so a scheduler
     /// that skips claimed cells still makes progress.
     pub fn is_claimed(&self, cell: u32) -> bool {
-        let pos = self.position[cell as usize];
-        self.claimers[cell as usize].iter().any(|&p| p < pos)
+        self.early_claims[cell as usize] != 0
     }
 
     fn is_unlabelled_compatible(&self, cell: u32) -> bool {
@@ -248,10 +258,13 @@ impl Ledger {
         if self.mode == Mode::FastPss {
             if let Some(o) = self.pending.get(&pos) {
                 for &v in &o.visited {
-                    if self.is_unlabelled_compatible(v) {
-                        self.claimers[v as usize].push(pos as u32);
-                        if let Some(changes) = &mut self.claim_changes {
-                            changes.push(v);
+                    if (pos as u32) < self.position[v as usize] {
+                        let n = &mut self.early_claims[v as usize];
+                        *n += 1;
+                        if *n == 1 {
+                            if let Some(changes) = &mut self.claim_changes {
+                                changes.push(v);
+                            }
                         }
                     }
                 }
@@ -290,34 +303,34 @@ impl Ledger {
         }
     }
 
+    /// Takes back the claims [`Ledger::offer`] made for the pending outcome `o` at `pos`.
     fn release_claims(&mut self, o: &Outcome, pos: usize) {
-        for v in &o.visited {
-            let c = &mut self.claimers[*v as usize];
-            if let Some(k) = c.iter().position(|&p| p as usize == pos) {
-                c.swap_remove(k);
-                if let Some(changes) = &mut self.claim_changes {
-                    changes.push(*v);
+        if self.mode != Mode::FastPss {
+            return;
+        }
+        for &v in &o.visited {
+            if (pos as u32) < self.position[v as usize] {
+                let n = &mut self.early_claims[v as usize];
+                *n -= 1;
+                if *n == 0 {
+                    if let Some(changes) = &mut self.claim_changes {
+                        changes.push(v);
+                    }
                 }
             }
         }
     }
 
     fn commit(&mut self, o: Outcome) {
-        let label = Label {
-            class: o.class,
-            status: o.status,
-            sali: o.sali,
-            source: o.cell,
-            t_end: o.t_end,
-        };
-        self.labels[o.cell as usize] = Some(label);
+        let index = u32::try_from(self.committed.len()).expect("fewer outcomes than cells");
+        self.labelled_by[o.cell as usize] = index;
         self.flags[o.cell as usize] |= LABELLED;
         self.resolved += 1;
         self.newly_labelled.push(o.cell);
         if self.mode == Mode::FastPss {
             for &v in &o.visited {
                 if self.is_unlabelled_compatible(v) {
-                    self.labels[v as usize] = Some(label);
+                    self.labelled_by[v as usize] = index;
                     self.flags[v as usize] |= LABELLED;
                     self.resolved += 1;
                     self.newly_labelled.push(v);
@@ -436,10 +449,24 @@ mod tests {
                     let pending = grid.position(c).is_some_and(|p| ledger.pending.contains_key(&p));
                     prop_assert_eq!(ledger.flags[c as usize] & PENDING != 0, pending);
                 }
+                // A cell is claimed exactly when a pending outcome before it crossed it.
+                let mut claimed = vec![false; grid.cells()];
+                if mode == Mode::FastPss {
+                    for (&p, o) in &ledger.pending {
+                        for &v in &o.visited {
+                            if grid.position(v).is_some_and(|q| p < q) {
+                                claimed[v as usize] = true;
+                            }
+                        }
+                    }
+                }
+                for c in 0..grid.cells() as u32 {
+                    prop_assert_eq!(ledger.is_claimed(c), claimed[c as usize], "cell {}", c);
+                }
             }
             prop_assert!(ledger.done());
             for c in 0..grid.cells() as u32 {
-                prop_assert_eq!(ledger.label(c).copied(), want[c as usize]);
+                prop_assert_eq!(ledger.label(c), want[c as usize]);
             }
             let committed: Vec<u32> = ledger.committed.iter().map(|o| o.cell).collect();
             prop_assert_eq!(&committed, &integrated);
@@ -478,7 +505,7 @@ mod tests {
             prop_assert!(part.frontier() <= full.frontier());
             for c in 0..grid.cells() as u32 {
                 if let Some(l) = part.label(c) {
-                    prop_assert_eq!(Some(*l), want[c as usize]);
+                    prop_assert_eq!(Some(l), want[c as usize]);
                 }
                 if local.claims().is_claimed(c) {
                     prop_assert!(want[c as usize].is_some(), "cell {} claimed", c);
@@ -540,7 +567,7 @@ mod tests {
                 }
             }
             for c in 0..grid.cells() as u32 {
-                prop_assert_eq!(ledger.label(c).copied(), want[c as usize]);
+                prop_assert_eq!(ledger.label(c), want[c as usize]);
             }
             prop_assert!(integrated <= grid.compatible_count());
         }
