@@ -269,6 +269,12 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             }
             Feed::Wait | Feed::Done => {
                 self.exhausted |= next == Feed::Done;
+                if !self.active[l] {
+                    // Still empty: its zeros are a fixed point of the step, so there is
+                    // nothing to reset. Idle lanes ask every few steps while a worker waits
+                    // for leases, and resetting them each time was 4 % of its CPU.
+                    return;
+                }
                 (Phase::zero(), None)
             }
         };
