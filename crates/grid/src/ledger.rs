@@ -54,6 +54,41 @@ const LABELLED: u8 = 2;
 /// cell of its window, and a flag answers without a map lookup.
 const PENDING: u8 = 4;
 
+/// Per cell, how many pending outcomes before it in canonical order crossed it. A count answers
+/// [`Ledger::is_claimed`], the only question asked of the claims, at one increment and one
+/// decrement per visited cell (a list of claimers per cell cost an allocation, a search and
+/// scattered reads: a quarter of the coordinator's CPU).
+#[derive(Clone, Debug)]
+struct ClaimCounts {
+    early: Vec<u32>,
+    /// Cells whose [`Ledger::is_claimed`] may have changed since the last
+    /// [`Ledger::drain_claim_changes`]; kept only after [`Ledger::track_claim_changes`].
+    changes: Option<Vec<u32>>,
+}
+
+impl ClaimCounts {
+    /// Makes (`add`) or takes back the claims of the pending outcome at canonical position
+    /// `pos` that crossed `visited`: one rule for both, so that every claim made is released.
+    fn count(&mut self, position: &[u32], visited: &[u32], pos: usize, add: bool) {
+        for &v in visited {
+            if (pos as u32) < position[v as usize] {
+                let n = &mut self.early[v as usize];
+                let was_claimed = *n != 0;
+                if add {
+                    *n += 1;
+                } else {
+                    *n -= 1;
+                }
+                if was_claimed != (*n != 0) {
+                    if let Some(changes) = &mut self.changes {
+                        changes.push(v);
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// Commits outcomes in canonical order.
 #[derive(Clone, Debug)]
 pub struct Ledger {
@@ -79,14 +114,8 @@ pub struct Ledger {
     pub committed_steps: u64,
     /// Cells labelled since the last [`Ledger::take_newly_labelled`].
     newly_labelled: Vec<u32>,
-    /// Fast PSS: per cell, how many pending outcomes before it in canonical order crossed it.
-    /// A count answers [`Ledger::is_claimed`], the only question asked of the claims, and
-    /// costs one increment and one decrement per visited cell (a list of claimers per cell
-    /// cost an allocation, a search and scattered reads: a quarter of the coordinator's CPU).
-    early_claims: Vec<u32>,
-    /// Cells whose [`Ledger::is_claimed`] may have changed since the last
-    /// [`Ledger::drain_claim_changes`]; kept only after [`Ledger::track_claim_changes`].
-    claim_changes: Option<Vec<u32>>,
+    /// Fast PSS: the claims of pending outcomes.
+    claims: ClaimCounts,
     /// Claims released by dropped outcomes so far (see [`Ledger::reopenings`]).
     reopened: u64,
 }
@@ -112,8 +141,10 @@ impl Ledger {
             dropped_steps: 0,
             committed_steps: 0,
             newly_labelled: Vec::new(),
-            early_claims: vec![0; cells],
-            claim_changes: None,
+            claims: ClaimCounts {
+                early: vec![0; cells],
+                changes: None,
+            },
             reopened: 0,
         }
     }
@@ -179,7 +210,7 @@ impl Ledger {
     /// frontier cell is never claimed (every pending outcome lies after it), so a scheduler
     /// that skips claimed cells still makes progress.
     pub fn is_claimed(&self, cell: u32) -> bool {
-        self.early_claims[cell as usize] != 0
+        self.claims.early[cell as usize] != 0
     }
 
     fn is_unlabelled_compatible(&self, cell: u32) -> bool {
@@ -207,20 +238,20 @@ impl Ledger {
     /// Keeps the cells whose claims change, for a reader that mirrors [`Ledger::is_claimed`]
     /// outside the ledger's lock (the embedded engine's running orbits).
     pub fn track_claim_changes(&mut self) {
-        self.claim_changes.get_or_insert_with(Vec::new);
+        self.claims.changes.get_or_insert_with(Vec::new);
     }
 
     /// Calls `f(cell, is_claimed(cell))` for every cell whose claims changed since the last
     /// call (some more than once).
     pub fn drain_claim_changes(&mut self, mut f: impl FnMut(u32, bool)) {
-        let Some(mut changes) = self.claim_changes.take() else {
+        let Some(mut changes) = self.claims.changes.take() else {
             return;
         };
         for &c in &changes {
             f(c, self.is_claimed(c));
         }
         changes.clear();
-        self.claim_changes = Some(changes);
+        self.claims.changes = Some(changes);
     }
 
     /// The cells labelled since the last call.
@@ -257,17 +288,7 @@ impl Ledger {
         // for one that did not commit at once (in a streaming run most do).
         if self.mode == Mode::FastPss {
             if let Some(o) = self.pending.get(&pos) {
-                for &v in &o.visited {
-                    if (pos as u32) < self.position[v as usize] {
-                        let n = &mut self.early_claims[v as usize];
-                        *n += 1;
-                        if *n == 1 {
-                            if let Some(changes) = &mut self.claim_changes {
-                                changes.push(v);
-                            }
-                        }
-                    }
-                }
+                self.claims.count(&self.position, &o.visited, pos, true);
             }
         }
     }
@@ -305,19 +326,8 @@ impl Ledger {
 
     /// Takes back the claims [`Ledger::offer`] made for the pending outcome `o` at `pos`.
     fn release_claims(&mut self, o: &Outcome, pos: usize) {
-        if self.mode != Mode::FastPss {
-            return;
-        }
-        for &v in &o.visited {
-            if (pos as u32) < self.position[v as usize] {
-                let n = &mut self.early_claims[v as usize];
-                *n -= 1;
-                if *n == 0 {
-                    if let Some(changes) = &mut self.claim_changes {
-                        changes.push(v);
-                    }
-                }
-            }
+        if self.mode == Mode::FastPss {
+            self.claims.count(&self.position, &o.visited, pos, false);
         }
     }
 
