@@ -41,6 +41,48 @@ fn cells_csv_is_byte_identical_for_one_and_two_threads() {
     assert_eq!(csv[0], csv[1]);
 }
 
+/// In a sweep, a run with the τ and t_final of an earlier one takes that run's labellers as a
+/// forecast for scheduling (run.json names it), and its cells.csv is byte for byte that of the
+/// same run alone.
+#[test]
+fn a_sweep_forecast_leaves_cells_csv_unchanged() {
+    let dir = tempfile::tempdir().unwrap();
+    let sweep = SMALL
+        .replace(
+            r#"method = ["tm-sbab2c"]"#,
+            r#"method = ["tm-sbab2c", "dop853"]"#,
+        )
+        .replace("tau = [0.5]", "tau = [0.05]\ndelta = [1e-8]")
+        .replace("t_final = [2e3]", "t_final = [500]");
+    let alone = sweep.replace(r#"["tm-sbab2c", "dop853"]"#, r#"["dop853"]"#);
+    let mut csv = Vec::new();
+    for (name, text) in [("sweep", &sweep), ("alone", &alone)] {
+        let spec = write_spec(dir.path(), &format!("{name}.toml"), text);
+        let out = dir.path().join(name);
+        json_stdout(&salient(&[
+            "run",
+            &spec,
+            "--threads",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+            "--json",
+        ]));
+        let run = run_dirs(&out).pop().unwrap();
+        let meta: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
+        let from = meta["forecast_from"].as_str().map(str::to_owned);
+        if name == "sweep" {
+            assert_eq!(from.as_deref(), Some("01-tm-sbab2c-tau0.05-t500"));
+        } else {
+            assert_eq!(from, None);
+        }
+        csv.push(std::fs::read(run.join("cells.csv")).unwrap());
+    }
+    assert!(csv[0].len() > 1000);
+    assert_eq!(csv[0], csv[1]);
+}
+
 #[test]
 fn run_writes_the_contract_and_never_lists_incompatible_cells() {
     let dir = tempfile::tempdir().unwrap();

@@ -6,7 +6,7 @@ use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use salient_core::orbit::{Class, Status};
-use salient_grid::{run_embedded, CellRun, Counts, Grid, Ledger, Mode};
+use salient_grid::{run_embedded_forecast, CellRun, Counts, Forecast, Grid, Ledger, Mode};
 use salient_report::{
     render_grey_map_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LogLogPlot, Table,
 };
@@ -46,6 +46,8 @@ pub struct RunResult {
     dir: PathBuf,
     /// (t, regular %, sticky %, chaotic %) at the checkpoints (full mode).
     checkpoints: Vec<(f64, f64, f64, f64)>,
+    /// The folder of the earlier run whose labellers guided this one's scheduling.
+    forecast_from: Option<String>,
 }
 
 fn run_dir_name(index: usize, r: &RunSpec) -> String {
@@ -88,9 +90,17 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         tracing::warn!("{w}");
     }
 
-    let mut results = Vec::new();
+    let mut results: Vec<RunResult> = Vec::new();
     for (index, r) in job.runs.iter().enumerate() {
-        let result = pool.install(|| run_one(&job, index, r, threads, &out))?;
+        // The last finished run of the sweep with the same τ and t_final (another method, or
+        // another δ) forecasts who labels which cell: a scheduling hint that leaves the
+        // labels unchanged.
+        let similar = results
+            .iter()
+            .rev()
+            .find(|p| p.spec.tau == r.tau && p.spec.t_final == r.t_final);
+        let forecast = similar.map(|p| (p.ledger.forecast(), p.dir_name()));
+        let result = pool.install(|| run_one(&job, index, r, threads, &out, forecast))?;
         write_run(&job, &result)?;
         results.push(result);
     }
@@ -126,6 +136,7 @@ fn run_one(
     r: &RunSpec,
     threads: usize,
     out: &Path,
+    forecast: Option<(Forecast, String)>,
 ) -> CliResult<RunResult> {
     let grid = job.grid();
     let mode = job.grid.mode;
@@ -157,7 +168,8 @@ fn run_one(
     let cpu0 = process_cpu_seconds();
     let start = Instant::now();
     let mut last_log = Instant::now();
-    let ledger = run_embedded(&grid, &cell_run, mode, window, |l| {
+    let hint = forecast.as_ref().map(|(f, _)| f);
+    let ledger = run_embedded_forecast(&grid, &cell_run, mode, window, hint, |l| {
         let resolved = l.resolved() as u64;
         let orbits = l.committed.len();
         let rate = orbits as f64 / start.elapsed().as_secs_f64().max(1e-9);
@@ -178,10 +190,19 @@ fn run_one(
     let wall_s = start.elapsed().as_secs_f64();
     let cpu_s = process_cpu_seconds() - cpu0;
     tracing::info!(run = %label, wall_s, orbits = ledger.committed.len(), "done");
-    Ok(RunResult::new(job, index, grid, ledger, cpu_s, wall_s, out))
+    let mut result = RunResult::new(job, index, grid, ledger, cpu_s, wall_s, out);
+    result.forecast_from = forecast.map(|(_, name)| name);
+    Ok(result)
 }
 
 impl RunResult {
+    /// The name of the run's folder.
+    fn dir_name(&self) -> String {
+        self.dir
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
+    }
+
     /// A finished run of `job` (embedded, or rebuilt from a coordinator's results), written
     /// under `out`.
     pub fn new(
@@ -198,6 +219,7 @@ impl RunResult {
             counts: Counts::of(&grid, &ledger),
             checkpoints: checkpoint_percentages(&grid, &ledger, &job.cell_run(index)),
             dir: out.join(run_dir_name(index, spec)),
+            forecast_from: None,
             spec: spec.clone(),
             grid,
             ledger,
@@ -321,6 +343,7 @@ pub fn write_run(job: &JobSpec, r: &RunResult) -> CliResult<()> {
     let mut run = run_json(r);
     run["spec"] = job.source.clone();
     run["versions"] = json!({ "salient": env!("CARGO_PKG_VERSION") });
+    run["forecast_from"] = json!(r.forecast_from);
     run["checkpoints"] = json!(r
         .checkpoints
         .iter()

@@ -6,7 +6,9 @@ use salient_core::method::Method;
 use salient_core::orbit::OrbitConfig;
 use salient_core::run::{adaptive_orbits_per_thread, MethodRun};
 use salient_core::Scheme;
-use salient_grid::{integrate_cells, run_embedded, CellRun, Counts, Grid, Ledger, Mode};
+use salient_grid::{
+    integrate_cells, run_embedded, run_embedded_forecast, CellRun, Counts, Grid, Ledger, Mode,
+};
 
 fn paper_grid(n: usize) -> Grid {
     let q2 = (
@@ -147,6 +149,59 @@ fn labels_do_not_depend_on_threads_or_window() {
     let f2 = pool(1).install(|| run_embedded(&grid, &dop, Mode::Full, 1, |_| {}));
     assert_eq!(f1.dropped + f2.dropped, 0, "full mode never drops");
     assert_eq!(cells(&f1), cells(&f2));
+}
+
+/// A forecast (the labellers of a similar run) decides which cells the lanes take first, so it
+/// changes the work done, never the labels: with its own labellers a run drops nearly nothing,
+/// and a poor forecast or another method's gives the same labels as none.
+#[test]
+fn a_forecast_changes_the_work_and_never_the_labels() {
+    let grid = paper_grid(60);
+    let labels = |l: &Ledger| {
+        (0..grid.cells() as u32)
+            .map(|c| l.label(c).map(|l| (l.class, l.source, l.sali.to_bits())))
+            .collect::<Vec<_>>()
+    };
+    let embedded = |run: &CellRun, threads: usize, forecast: Option<&salient_grid::Forecast>| {
+        pool(threads)
+            .install(|| run_embedded_forecast(&grid, run, Mode::FastPss, 8, forecast, |_| {}))
+    };
+    // τ = 0.05: four lanes per thread run ahead of the frontier.
+    let run = tm("sbab2c", 0.05, 2e3);
+    let plain = embedded(&run, 1, None);
+    let own = plain.forecast();
+    // τ = 0.5's orbits part from τ = 0.05's, and so do their labellers: a poor forecast.
+    let poor = embedded(&tm("sbab2c", 0.5, 2e3), 2, None).forecast();
+    let other = embedded(&tm("sbab4", 0.05, 2e3), 2, None).forecast();
+    for (name, forecast) in [("own", &own), ("poor", &poor), ("other", &other)] {
+        for threads in [1, 2] {
+            let x = embedded(&run, threads, Some(forecast));
+            assert!(labels(&plain) == labels(&x), "{name}, {threads} threads");
+        }
+    }
+    // One thread is deterministic: its own labellers leave the lanes only cells whose orbits
+    // commit (the last few cells aside).
+    let guided = embedded(&run, 1, Some(&own));
+    eprintln!(
+        "dropped steps: {} without a forecast, {} with its own",
+        plain.dropped_steps, guided.dropped_steps
+    );
+    assert!(guided.dropped_steps * 10 < plain.dropped_steps);
+    // The Table 2 use: an adaptive method forecast by another on the same τ and t_final.
+    let mut dop = run.clone();
+    dop.run = MethodRun {
+        method: Method::Dop853,
+        delta: Some(1e-8),
+        protocol: Protocol::Restart,
+    };
+    dop.config = OrbitConfig::new(0.05, 200.0);
+    let mut taylor = dop.clone();
+    taylor.run.method = Method::Taylor;
+    let by_taylor = embedded(&taylor, 2, None).forecast();
+    let want = labels(&embedded(&dop, 1, None));
+    for threads in [1, 2] {
+        assert!(want == labels(&embedded(&dop, threads, Some(&by_taylor))));
+    }
 }
 
 /// A stream of leased cells, as a worker feeds the executor: each cell given once, in order,
