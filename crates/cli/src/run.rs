@@ -6,7 +6,9 @@ use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use salient_core::orbit::{Class, Status};
-use salient_grid::{run_embedded_forecast, CellRun, Counts, Forecast, Grid, Ledger, Mode};
+use salient_grid::{
+    run_embedded_forecast, takes_forecast, CellRun, Counts, Forecast, Grid, Ledger, Mode,
+};
 use salient_report::{
     render_grey_map_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LogLogPlot, Table,
 };
@@ -98,6 +100,7 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         let similar = results
             .iter()
             .rev()
+            .filter(|_| takes_forecast(&job.cell_run(index), job.grid.mode))
             .find(|p| p.spec.tau == r.tau && p.spec.t_final == r.t_final);
         let forecast = similar.map(|p| (p.ledger.forecast(), p.dir_name()));
         let result = pool.install(|| run_one(&job, index, r, threads, &out, forecast))?;

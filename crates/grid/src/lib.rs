@@ -9,7 +9,7 @@ pub mod ledger;
 pub mod spec;
 pub mod summary;
 
-pub use executor::{integrate_cells, run_embedded, run_embedded_forecast, CellRun};
+pub use executor::{integrate_cells, run_embedded, run_embedded_forecast, takes_forecast, CellRun};
 pub use geometry::Grid;
 pub use ledger::{Forecast, Label, Ledger, Mode, Outcome};
 pub use summary::Counts;
