@@ -97,11 +97,14 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         // The last finished run of the sweep with the same τ and t_final (another method, or
         // another δ) forecasts who labels which cell: a scheduling hint that leaves the
         // labels unchanged.
-        let similar = results
-            .iter()
-            .rev()
-            .filter(|_| takes_forecast(&job.cell_run(index), job.grid.mode))
-            .find(|p| p.spec.tau == r.tau && p.spec.t_final == r.t_final);
+        let similar = takes_forecast(&job.cell_run(index), job.grid.mode)
+            .then(|| {
+                results
+                    .iter()
+                    .rev()
+                    .find(|p| p.spec.tau == r.tau && p.spec.t_final == r.t_final)
+            })
+            .flatten();
         let forecast = similar.map(|p| (p.ledger.forecast(), p.dir_name()));
         let result = pool.install(|| run_one(&job, index, r, threads, &out, forecast))?;
         write_run(&job, &result)?;

@@ -708,32 +708,28 @@ impl<P: FnMut(&Ledger)> Engine<'_, P> {
                 || ledger.is_claimed(c)
                 || claims.running_crosser(grid, c).is_some()
         };
-        let cell = match self.forecast {
-            None => ledger.needed(1, &busy).first().copied(),
-            Some(forecast) => {
-                // Cells forecast to be labelled by an orbit not yet committed come last, but
-                // after FORECAST_PATIENCE of them the first is taken: a poor forecast (another
-                // τ's labels, say) would otherwise send the lanes ever further ahead of the
-                // frontier while the cells it needs wait.
-                let frontier = ledger.frontier();
-                let (mut chosen, mut fallback, mut deferred) = (None, None, 0);
-                ledger.scan_needed(|c| {
-                    if forecast.defers(c, frontier) {
-                        if fallback.is_none() && !busy(c) {
-                            fallback = Some(c);
-                        }
-                        deferred += 1;
-                        return deferred > FORECAST_PATIENCE && fallback.is_some();
-                    }
-                    if busy(c) {
-                        return false;
-                    }
-                    chosen = Some(c);
-                    true
-                });
-                chosen.or(fallback)
+        // Cells a forecast says an orbit not yet committed will label come last, but after
+        // FORECAST_PATIENCE of them the first is taken: a poor forecast (another τ's labels,
+        // say) would otherwise send the lanes ever further ahead of the frontier while the
+        // cells it needs wait.
+        let frontier = ledger.frontier();
+        let defers = |c: u32| self.forecast.is_some_and(|f| f.defers(c, frontier));
+        let (mut cell, mut fallback, mut deferred) = (None, None, 0);
+        ledger.scan_needed(|c| {
+            if defers(c) {
+                if fallback.is_none() && !busy(c) {
+                    fallback = Some(c);
+                }
+                deferred += 1;
+                return deferred > FORECAST_PATIENCE && fallback.is_some();
             }
-        };
+            if busy(c) {
+                return false;
+            }
+            cell = Some(c);
+            true
+        });
+        let cell = cell.or(fallback);
         *dry_since = cell.is_none().then_some(stopped);
         match cell {
             Some(c) => {
