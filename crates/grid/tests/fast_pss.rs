@@ -30,6 +30,19 @@ fn tm(scheme: &str, tau: f64, t_final: f64) -> CellRun {
     }
 }
 
+/// An adaptive method at δ = 1e-8 in the restart protocol.
+fn adaptive(method: Method, tau: f64, t_final: f64) -> CellRun {
+    CellRun {
+        run: MethodRun {
+            method,
+            delta: Some(1e-8),
+            protocol: Protocol::Restart,
+        },
+        config: OrbitConfig::new(tau, t_final),
+        checkpoints_per_decade: 0,
+    }
+}
+
 fn pool(threads: usize) -> rayon::ThreadPool {
     rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
@@ -105,13 +118,7 @@ fn labels_do_not_depend_on_threads_or_window() {
     // Adaptive methods stream one orbit per thread or a few in SIMD lanes (taylor-dd always,
     // f64 Taylor and DOP853 at small τ), claiming crossed cells and abandoning orbits as they go: the labels are those of
     // the sequential rule (rounds of one cell, the worker's path), with one thread or two.
-    let mut dop = run.clone();
-    dop.run = MethodRun {
-        method: Method::Dop853,
-        delta: Some(1e-8),
-        protocol: Protocol::Restart,
-    };
-    dop.config = OrbitConfig::new(0.5, 500.0);
+    let dop = adaptive(Method::Dop853, 0.5, 500.0);
     let mut taylor = dop.clone();
     taylor.run.method = Method::Taylor;
     let mut taylor_dd = dop.clone();
@@ -188,15 +195,8 @@ fn a_forecast_changes_the_work_and_never_the_labels() {
     );
     assert!(guided.dropped_steps * 10 < plain.dropped_steps);
     // The Table 2 use: an adaptive method forecast by another on the same τ and t_final.
-    let mut dop = run.clone();
-    dop.run = MethodRun {
-        method: Method::Dop853,
-        delta: Some(1e-8),
-        protocol: Protocol::Restart,
-    };
-    dop.config = OrbitConfig::new(0.05, 200.0);
-    let mut taylor = dop.clone();
-    taylor.run.method = Method::Taylor;
+    let dop = adaptive(Method::Dop853, 0.05, 200.0);
+    let taylor = adaptive(Method::Taylor, 0.05, 200.0);
     let by_taylor = embedded(&taylor, 2, None).forecast();
     let want = labels(&embedded(&dop, 1, None));
     for threads in [1, 2] {
