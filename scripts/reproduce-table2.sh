@@ -2,7 +2,10 @@
 # Reproduces the seed paper's Table 2 with `salient run examples/table2.toml`, or a subset:
 #   scripts/reproduce-table2.sh                 # the whole table (hours on 2 cores)
 #   scripts/reproduce-table2.sh tm-sbab2c 1e4   # rows of one method and t_final
-# Writes out/table2[-METHOD-T]/table.md and prints it.
+# Writes out/table2[-METHOD-T]/table.md and prints it. The whole table runs as one sweep, in
+# which every run after the first of its tau and t_final takes the labellers of the run before
+# it as a scheduling forecast (same results, far less speculative work); rows of one method
+# have no such predecessor.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release -q -p salient-cli
