@@ -1216,7 +1216,7 @@ pub fn run_embedded(
 /// orbit not yet committed. The labels are the same with any forecast or none; a good one
 /// saves most of the speculative work (400×400, τ = 0.01, t = 1e4: f64 Taylor drops 29 % of
 /// its steps alone and none with DOP853's labellers, DOP853 1 % with TM-SBAB2C's). Ignored
-/// where [`takes_forecast`] says no.
+/// where [`takes_forecast`] says no, and when it was made on a grid of another size.
 pub fn run_embedded_forecast(
     grid: &Grid,
     cell_run: &CellRun,
