@@ -182,7 +182,14 @@ fn in_lanes<H: TaylorSeries<N>, const N: usize, const K: usize, const L: usize>(
     let (dq, dp) = initial_vectors::<N, K>(setup.config.deviation);
     let start = |q, p| Phase { q, p, dq, dp };
     match &run.method {
-        Method::Taylor => integrate_feed_taylor_on::<H, f64, N, K, L>(isa, setup, start, feed),
+        // f64 Taylor's four lanes fill one AVX2 register per number; compiled for AVX-512 the
+        // compiler packs two numbers into one register and shuffles them apart, which cost
+        // 8 % (100×100, τ = 0.01, t = 1e3, 1 thread, alternated four times, 2026-11-26:
+        // 1.78–1.89 s pinned against 1.95–2.16 s). DOP853's stages and taylor-dd's
+        // double-double sums gain from AVX-512's 32 registers.
+        Method::Taylor => {
+            integrate_feed_taylor_on::<H, f64, N, K, L>(Isa::Pinned, setup, start, feed)
+        }
         Method::Dop853 => integrate_feed_dop853_on::<H, N, K, L>(isa, setup, start, feed),
         Method::TaylorDd => integrate_feed_taylor_on::<H, DoubleDouble, N, K, L>(
             isa,

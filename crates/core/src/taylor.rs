@@ -566,6 +566,29 @@ fn lane_finite<T: Lanewise, const N: usize, const K: usize>(y: &Phase<T, N, K>, 
     finite(&y.q) && finite(&y.p) && y.dq.iter().chain(&y.dp).all(finite)
 }
 
+/// [`lane_finite`] of every lane at once: the same test of each number, without a branch per
+/// number (lane by lane it was a twentieth of a taylor-dd run at τ = 0.01).
+#[inline(always)]
+fn lanes_finite<T: Lanewise, const N: usize, const K: usize, const L: usize>(
+    y: &Phase<T, N, K>,
+) -> [bool; L] {
+    let mut bad = [false; L];
+    let mut scan = |v: &[T; N]| {
+        for x in v {
+            for (l, b) in bad.iter_mut().enumerate() {
+                *b |= !x.lane(l).to_f64().is_finite();
+            }
+        }
+    };
+    scan(&y.q);
+    scan(&y.p);
+    for k in 0..K {
+        scan(&y.dq[k]);
+        scan(&y.dp[k]);
+    }
+    bad.map(|b| !b)
+}
+
 /// Bounds on the norms under which the natural step surely exceeds any reach up to `reach`.
 #[derive(Clone, Copy, Debug)]
 struct ReachTest {
@@ -906,9 +929,17 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
     pub fn step(&mut self, t_end: &[Option<f64>; L]) -> [Option<Result<(), StepFailure>>; L] {
         let mut out = [None; L];
         let mut go = [false; L];
+        // In f64 lane by lane measured faster (the test is cheap there, and the branch-free
+        // form changed how the step around it compiled: 1.85 against 1.67 s, f64 Taylor,
+        // 100×100, τ = 0.01, t = 1e3).
+        let finite: [bool; L] = if T::EXTENDED {
+            lanes_finite::<T, N, K, L>(&self.y)
+        } else {
+            core::array::from_fn(|l| lane_finite(&self.y, l))
+        };
         for l in 0..L {
             if t_end[l].is_some() {
-                if lane_finite(&self.y, l) {
+                if finite[l] {
                     go[l] = true;
                 } else {
                     out[l] = Some(Err(StepFailure::NonFinite { t: self.t(l) }));

@@ -485,3 +485,99 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         }
     }
 }
+
+/// DOP853's lanes against the one-orbit integrator step by step, on the paths the grid's
+/// restart protocol does not take at every step: lanes left out of a step, steps without a
+/// renormalisation, rejected attempts (a bold controller) and the dense output of a step.
+#[test]
+fn dop853_lanes_equal_the_one_orbit_integrator_step_by_step() {
+    use salient_core::adaptive::unit_vectors;
+    use salient_core::dop853::{Dense, Dop853, Dop853Config, Dop853Lanes};
+    use salient_core::tangent::Phase;
+    const L: usize = 4;
+    let ham = HenonHeiles;
+    // A bold controller (steps may grow twentyfold), so that some attempts are rejected.
+    let config = Dop853Config {
+        safe: 0.99,
+        fac_max: 20.0,
+        ..Dop853Config::with_delta(1e-12)
+    };
+    let starts: Vec<Phase<f64, 2, 2>> = [(0.558, 0.0), (-0.25, 0.0), (0.1, 0.2), (0.0, -0.3)]
+        .iter()
+        .map(|&(q2, p2)| {
+            let (q, p) = on_section(&ham, 0.125, &[q2], &[p2]).expect("on the section");
+            Phase {
+                q,
+                p,
+                dq: [[1.0, 0.0], [0.0, 1.0]],
+                dp: [[0.0; 2]; 2],
+            }
+        })
+        .collect();
+    let mut lanes = Dop853Lanes::<_, 2, 2, L>::new(&ham, config);
+    let mut alone: Vec<_> = starts
+        .iter()
+        .enumerate()
+        .map(|(l, y)| {
+            lanes.start(l, 0.0, y);
+            Dop853::new(&ham, config, 0.0, *y)
+        })
+        .collect();
+    let bits = |y: &Phase<f64, 2, 2>| {
+        let mut v: Vec<u64> = y.q.iter().chain(&y.p).map(|x| x.to_bits()).collect();
+        for k in 0..2 {
+            v.extend(y.dq[k].iter().chain(&y.dp[k]).map(|x| x.to_bits()));
+        }
+        v
+    };
+    let mut rejected = 0;
+    for round in 0..400u32 {
+        // Lane l sits out every (l + 2)-th round; some lanes are renormalised, others not.
+        let asked: [Option<f64>; L] =
+            core::array::from_fn(|l| (!round.is_multiple_of(l as u32 + 2)).then_some(1e4));
+        let renormalise: [bool; L] = core::array::from_fn(|l| (round + l as u32).is_multiple_of(3));
+        let (outcomes, factors) = lanes.renormalise_and_step(&renormalise, &asked);
+        for l in 0..L {
+            if renormalise[l] {
+                let factor = unit_vectors(&mut alone[l].y);
+                alone[l].state_changed();
+                assert_eq!(
+                    factor.to_bits(),
+                    factors[l].to_bits(),
+                    "lane {l}, round {round}"
+                );
+            }
+            let Some(end) = asked[l] else {
+                assert!(outcomes[l].is_none());
+                continue;
+            };
+            let want = alone[l].step(end, None);
+            assert_eq!(outcomes[l], Some(want), "lane {l}, round {round}");
+            assert_eq!(lanes.t(l).to_bits(), alone[l].t.to_bits(), "lane {l}");
+            assert_eq!(
+                bits(&lanes.state(l)),
+                bits(&alone[l].y),
+                "lane {l}, round {round}"
+            );
+        }
+        if round % 50 == 49 {
+            // Valid until the next step: only for the lanes that stepped just now.
+            for l in (0..L).filter(|&l| asked[l].is_some()) {
+                let (mut a, mut b) = (Dense::empty(), Dense::empty());
+                lanes.dense_output(l, &mut a);
+                alone[l].dense_output(&mut b);
+                let mid = 0.5 * (lanes.t_prev(l) + lanes.t(l));
+                assert_eq!(
+                    bits(&a.at(mid)),
+                    bits(&b.at(mid)),
+                    "lane {l}, round {round}"
+                );
+            }
+        }
+        rejected = alone.iter().map(|a| a.ctl.rejected).sum::<u64>();
+    }
+    assert!(
+        rejected > 0,
+        "no attempt was rejected: the test misses the retry passes"
+    );
+}
