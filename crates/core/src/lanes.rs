@@ -301,7 +301,7 @@ struct LaneOrbit<'b, B, S, const L: usize> {
     slot: &'b Cell<Slot>,
     /// While a restart-protocol request is out, what the loop around the batch needs to take
     /// quiet steps for the driver.
-    quiet: &'b Cell<Option<QuietRequest<S>>>,
+    quiet: &'b RefCell<Option<QuietRequest<S>>>,
     lane: usize,
     /// Initial energy, in the lane's precision.
     h0: S,
@@ -372,16 +372,16 @@ where
         pace: &'a mut Pace,
         rules: &'a QuietRules,
     ) -> impl Future<Output = (Option<f64>, Result<(), StepFailure>)> + 'a {
-        self.quiet.set(Some(QuietRequest {
+        *self.quiet.borrow_mut() = Some(QuietRequest {
             rules: *rules,
             pace: *pace,
             h0: self.h0,
-        }));
+        });
         let quiet = self.quiet;
         let step = self.renormalise_and_step(renormalise, (pace.n + 1) as f64 * rules.tau);
         async move {
             let answer = step.await;
-            if let Some(request) = quiet.take() {
+            if let Some(request) = quiet.borrow_mut().take() {
                 *pace = request.pace;
             }
             answer
@@ -514,7 +514,9 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
     let ham = setup.ham;
     let batch = RefCell::new(batch);
     let slots: [Cell<Slot>; L] = core::array::from_fn(|_| Cell::new(Slot::Idle));
-    let quiet: [Cell<Option<QuietRequest<B::Lane>>>; L] = core::array::from_fn(|_| Cell::new(None));
+    // In place (a `Cell` copied each request out and back in at every step of every lane).
+    let quiet: [RefCell<Option<QuietRequest<B::Lane>>>; L] =
+        core::array::from_fn(|_| RefCell::new(None));
     let feed = RefCell::new(feed);
     let mut lanes: [Option<(usize, LaneFuture<'_, N>)>; L] = core::array::from_fn(|_| None);
     let mut context = Context::from_waker(Waker::noop());
@@ -548,7 +550,7 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
                     Feed::Orbit(id, q, p) => {
                         let y = start(q, p);
                         batch.borrow_mut().start(l, &y);
-                        quiet[l].set(None);
+                        *quiet[l].borrow_mut() = None;
                         let integ = LaneOrbit::<_, _, L> {
                             batch: &batch,
                             slot: &slots[l],
@@ -604,7 +606,7 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
             // A quiet restart step is the driver's too, taken here: the lane asks for its
             // next step without waking its future (the driver's per-step work in each lane's
             // future was a third of an f64 Taylor run at τ = 0.01).
-            if let (Ok(()), Some(mut request)) = (r, quiet[l].get()) {
+            if let (Ok(()), Some(request)) = (r, quiet[l].borrow_mut().as_mut()) {
                 let b = batch.borrow();
                 let (b, h0) = (&*b, request.h0);
                 if quiet_restart_step(
@@ -618,7 +620,6 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
                     || lane_energy_error(b, l, h0, None),
                 ) {
                     let next = (request.pace.n + 1) as f64 * request.rules.tau;
-                    quiet[l].set(Some(request));
                     slots[l].set(Slot::Asked(next, true));
                     continue;
                 }

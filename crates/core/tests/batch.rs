@@ -407,7 +407,8 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
     use salient_core::lanes::{LANES, LONG_RUN_LANES};
     use salient_core::method::Method;
     use salient_core::run::{
-        adaptive_orbits_per_thread, integrate_feed_adaptive, run_adaptive, MethodRun,
+        adaptive_orbits_per_thread, feed_orbits_per_thread, integrate_feed_adaptive, run_adaptive,
+        MethodRun, GUIDED_DOP853_LANES,
     };
     let ham = HenonHeiles;
     let on_surface: Vec<_> = (0..24)
@@ -441,11 +442,26 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         LANES
     );
     assert_eq!(adaptive_orbits_per_thread(&Method::Dop853, 0.5, 400.0), 1);
+    let wide = salient_core::batch::Isa::detect().lanes() == GUIDED_DOP853_LANES;
+    assert_eq!(
+        feed_orbits_per_thread(&Method::Dop853, 0.05, 400.0, true),
+        if wide { GUIDED_DOP853_LANES } else { LANES }
+    );
+    assert_eq!(
+        feed_orbits_per_thread(&Method::Taylor, 0.05, 400.0, true),
+        LANES
+    );
     assert_eq!(
         adaptive_orbits_per_thread(&Method::TaylorDd, 0.5, 4e4),
         LONG_RUN_LANES
     );
-    for (method, protocol, tau, t_final, delta, drift) in cases {
+    // DOP853 in the wider batch a forecast allows, where the host has it.
+    let runs = cases
+        .iter()
+        .flat_map(|c| [(c, false), (c, true)])
+        .filter(|(c, guided)| !guided || matches!(c.0, Method::Dop853));
+    for (case, guided) in runs {
+        let (method, protocol, tau, t_final, delta, drift) = case.clone();
         let run = MethodRun {
             method,
             delta: Some(delta),
@@ -456,7 +472,9 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
             config.thresholds.energy_drift = drift;
         }
         let mut feed = Slice::new(&on_surface);
-        integrate_feed_adaptive::<_, 2, 2>(&ham, &run, 0.125, &config, &crossings, &mut feed);
+        integrate_feed_adaptive::<_, 2, 2>(
+            &ham, &run, 0.125, &config, &crossings, guided, &mut feed,
+        );
         let mut statuses = std::collections::BTreeSet::new();
         for (i, &(q, p)) in on_surface.iter().enumerate() {
             let want = run_adaptive::<_, 2, 2>(

@@ -482,7 +482,7 @@ fn drive_feed(
 ) {
     match map {
         Some(map) => drive(map, &cell_run.config, requests, mode, feed),
-        None => drive_adaptive(grid, cell_run, requests, feed),
+        None => drive_adaptive(grid, cell_run, requests, false, feed),
     }
 }
 
@@ -1260,7 +1260,13 @@ pub fn run_embedded_forecast(
                 book: CrossingBook::default(),
                 dry_since: None,
             };
-            drive_adaptive(grid, cell_run, &requests, &mut feed);
+            drive_adaptive(
+                grid,
+                cell_run,
+                &requests,
+                engine.forecast.is_some(),
+                &mut feed,
+            );
         });
         return finish(shared, &claims);
     };
@@ -1326,12 +1332,14 @@ pub fn takes_forecast(cell_run: &CellRun, mode: Mode) -> bool {
         && std::env::var("SALIENT_FORECAST").map_or(true, |v| v != "0")
 }
 
-/// The adaptive methods' driver over a [`BatchFeed`]: Taylor orbits in SIMD lanes, DOP853
-/// one at a time, each crossing reported as it is located, abandonment polled every few steps.
+/// The adaptive methods' driver over a [`BatchFeed`]: orbits in SIMD lanes or one at a time
+/// ([`salient_core::run::feed_orbits_per_thread`]; `guided`: the feed follows a forecast), each crossing reported
+/// as it is located, abandonment polled every few steps.
 fn drive_adaptive(
     grid: &Grid,
     cell_run: &CellRun,
     requests: &Requests,
+    guided: bool,
     feed: &mut impl BatchFeed<2>,
 ) {
     integrate_feed_adaptive::<_, 2, 2>(
@@ -1340,6 +1348,7 @@ fn drive_adaptive(
         grid.energy,
         &cell_run.config,
         requests,
+        guided,
         feed,
     );
 }
