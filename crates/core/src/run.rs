@@ -138,12 +138,13 @@ pub fn adaptive_orbits_per_thread(method: &Method, tau: f64, t_final: f64) -> us
 }
 
 /// DOP853's lanes per batch where a forecast guides the feed (`guided` in
-/// [`integrate_feed_adaptive`]) and the host has AVX-512: one register per number. Its stages
-/// cost 9 % less per orbit-step in 8 lanes than in 4, but without a forecast the fast-PSS rule
-/// drops 46 % of the steps of 8 lanes in flight against 29 % of 4. 400×400, τ = 0.01,
-/// t = 1e4, 2 threads (2026-11-26, alternated twice): after TM-SBAB2C in a sweep (its
-/// labellers as the forecast) 37.4–38.4 s in 8 lanes against 41.5–41.7 s in 4; alone
-/// 67.3 against 55.4 s. f64 Taylor and taylor-dd step no cheaper per orbit in 8 lanes.
+/// [`integrate_feed_adaptive`]) and the host has AVX-512: one register per number. Its steps
+/// cost less per orbit in 8 lanes than in 4 (91 against 110 ns at τ = 0.01), but without a
+/// forecast the fast-PSS rule drops 46 % of the steps of 8 lanes in flight against 29 % of 4.
+/// 400×400, τ = 0.01, 2 threads (2026-11-26): after TM-SBAB2C in a sweep (its labellers as
+/// the forecast) t = 1e4 37.4–39.8 s in 8 lanes against 41.5–41.7 s in 4, t = 1e5 303 s
+/// (12 % of the steps dropped) against 327 s (1 %); alone, t = 1e4, 67.3 against 55.4 s.
+/// f64 Taylor and taylor-dd step no cheaper per orbit in 8 lanes.
 pub const GUIDED_DOP853_LANES: usize = 8;
 
 /// The orbits one thread of [`integrate_feed_adaptive`] integrates at once: as

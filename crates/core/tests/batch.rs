@@ -548,7 +548,6 @@ fn dop853_lanes_equal_the_one_orbit_integrator_step_by_step() {
         }
         v
     };
-    let mut rejected = 0;
     for round in 0..400u32 {
         // Lane l sits out every (l + 2)-th round; some lanes are renormalised, others not.
         let asked: [Option<f64>; L] =
@@ -592,8 +591,8 @@ fn dop853_lanes_equal_the_one_orbit_integrator_step_by_step() {
                 );
             }
         }
-        rejected = alone.iter().map(|a| a.ctl.rejected).sum::<u64>();
     }
+    let rejected: u64 = alone.iter().map(|a| a.ctl.rejected).sum();
     assert!(
         rejected > 0,
         "no attempt was rejected: the test misses the retry passes"
