@@ -1333,8 +1333,8 @@ pub fn takes_forecast(cell_run: &CellRun, mode: Mode) -> bool {
 }
 
 /// The adaptive methods' driver over a [`BatchFeed`]: orbits in SIMD lanes or one at a time
-/// ([`salient_core::run::feed_orbits_per_thread`]; `guided`: the feed follows a forecast), each crossing reported
-/// as it is located, abandonment polled every few steps.
+/// ([`salient_core::run::feed_orbits_per_thread`]; `guided`: the feed follows a forecast),
+/// each crossing reported as it is located, abandonment polled every few steps.
 fn drive_adaptive(
     grid: &Grid,
     cell_run: &CellRun,
