@@ -5,7 +5,7 @@
 //!
 //! cargo run --release -p salient-core --example crossing_cost
 
-use salient_core::section::{locate_upward, locate_upward_lanes, on_section};
+use salient_core::section::{locate_upward, locate_upward_lanes, on_section, CrossingStep};
 use salient_core::tangent::{Phase, Stepping};
 use salient_core::{HenonHeiles, Scheme, TangentMap};
 use std::hint::black_box;
@@ -29,7 +29,12 @@ fn main() {
             let (q0, p0) = (s.x.q, s.x.p);
             s.advance();
             if q0[0] < 0.0 && s.x.q[0] >= 0.0 {
-                starts.push((q0, p0, n as f64 * tau));
+                starts.push(CrossingStep {
+                    q: q0,
+                    p: p0,
+                    t: n as f64 * tau,
+                    q1_end: s.x.q[0],
+                });
             }
         }
     }
@@ -45,7 +50,7 @@ fn main() {
     let scalar = best(&|| {
         starts
             .iter()
-            .map(|(q, p, t)| locate_upward(&map, q, p, *t).q[1])
+            .map(|step| locate_upward(&map, step).q[1])
             .sum()
     });
     let lanes = best(&|| {

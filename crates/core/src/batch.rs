@@ -17,7 +17,7 @@ use crate::orbit::{
     Tracker, ENERGY_CHECK_EVERY,
 };
 use crate::real::{dot, Lanes};
-use crate::section::{locate_upward_lanes, Crossing};
+use crate::section::{locate_upward_lanes, Crossing, CrossingStep};
 use crate::tangent::{EdgeIncrement, Phase, TangentMap};
 
 fn get_lane<const N: usize, const K: usize, const L: usize>(
@@ -112,9 +112,9 @@ pub trait BatchFeed<const N: usize> {
     fn locates_crossings(&self) -> bool {
         false
     }
-    /// Orbit `id` crossed the section upwards in the step that started at (q, p) at time t
-    /// (only when [`BatchFeed::locates_crossings`]).
-    fn crossing_step(&mut self, _id: usize, _q: [f64; N], _p: [f64; N], _t: f64) {}
+    /// Orbit `id` crossed the section upwards in `step` (only when
+    /// [`BatchFeed::locates_crossings`]).
+    fn crossing_step(&mut self, _id: usize, _step: CrossingStep<N>) {}
     /// Polled every [`poll_interval`] steps: true abandons orbit `id` (no result is reported).
     fn cancelled(&mut self, _id: usize) -> bool {
         false
@@ -534,15 +534,21 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
             if only_crossed[l] {
                 // Nothing else is due, so the tracker's pass would only flag the crossing: at
                 // τ = 0.5 that pass on every crossing was half the stepping thread's time.
-                let t = (n - 1) as f64 * map.tau();
+                let step = CrossingStep {
+                    q: qp,
+                    p: pp,
+                    t: (n - 1) as f64 * map.tau(),
+                    q1_end: st.x.q[0].0[l],
+                };
                 if feed_locates {
-                    feed.crossing_step(job.id, qp, pp, t);
-                } else if queued.push(l, qp, pp, t) {
+                    feed.crossing_step(job.id, step);
+                } else if queued.push(l, step) {
                     queued.flush(map, &mut st.jobs, feed);
                 }
                 continue;
             }
             let (mut sx, mut sinc) = get_lane(&st.x, &st.inc, l);
+            let q1_end = sx.q[0];
             let mut crossed = false;
             let stop = job.tracker.after_step(
                 map,
@@ -555,10 +561,15 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
                 Some(&mut crossed),
             );
             if crossed {
-                let t = (n - 1) as f64 * map.tau();
+                let step = CrossingStep {
+                    q: qp,
+                    p: pp,
+                    t: (n - 1) as f64 * map.tau(),
+                    q1_end,
+                };
                 if feed_locates {
-                    feed.crossing_step(job.id, qp, pp, t);
-                } else if queued.push(l, qp, pp, t) {
+                    feed.crossing_step(job.id, step);
+                } else if queued.push(l, step) {
                     queued.flush(map, &mut st.jobs, feed);
                 }
             }
@@ -580,7 +591,7 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
 /// Crossings waiting to be located, at most one batch of `L`.
 struct CrossingQueue<const N: usize, const L: usize> {
     lane: [usize; L],
-    start: [([f64; N], [f64; N], f64); L],
+    steps: [CrossingStep<N>; L],
     len: usize,
 }
 
@@ -588,16 +599,15 @@ impl<const N: usize, const L: usize> CrossingQueue<N, L> {
     fn new() -> Self {
         CrossingQueue {
             lane: [0; L],
-            start: [([0.0; N], [0.0; N], 0.0); L],
+            steps: [CrossingStep::ZERO; L],
             len: 0,
         }
     }
 
-    /// Queues the crossing in the step of lane `l` that started at (q, p, t); true when the
-    /// queue is full.
-    fn push(&mut self, l: usize, q: [f64; N], p: [f64; N], t: f64) -> bool {
+    /// Queues the crossing of lane `l` in `step`; true when the queue is full.
+    fn push(&mut self, l: usize, step: CrossingStep<N>) -> bool {
         self.lane[self.len] = l;
-        self.start[self.len] = (q, p, t);
+        self.steps[self.len] = step;
         self.len += 1;
         self.len == L
     }
@@ -612,7 +622,7 @@ impl<const N: usize, const L: usize> CrossingQueue<N, L> {
         if self.len == 0 {
             return;
         }
-        let found = locate_upward_lanes::<H, N, L>(map, &self.start[..self.len]);
+        let found = locate_upward_lanes::<H, N, L>(map, &self.steps[..self.len]);
         for (k, c) in found.iter().take(self.len).enumerate() {
             let job = jobs[self.lane[k]]
                 .as_mut()

@@ -4,7 +4,7 @@
 use crate::hamiltonian::Hamiltonian;
 use crate::indicators::{gali, may_be_aligned, norm2, pow2_rescale, sali, LogGrowth};
 use crate::real::dot;
-use crate::section::{locate_upward, Crossing};
+use crate::section::{locate_upward, Crossing, CrossingStep};
 use crate::tangent::{EdgeIncrement, Phase, Stepping, TangentMap};
 use rand_chacha::rand_core::{RngCore, SeedableRng};
 use serde::{Deserialize, Serialize};
@@ -446,9 +446,13 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
                 // The batched driver locates several lanes' crossings together.
                 Some(deferred) => *deferred = true,
                 None => {
-                    let t_prev = (n - 1) as f64 * self.tau;
-                    out.crossings
-                        .push(locate_upward(map, q_prev, p_prev, t_prev));
+                    let step = CrossingStep {
+                        q: *q_prev,
+                        p: *p_prev,
+                        t: (n - 1) as f64 * self.tau,
+                        q1_end: x.q[0],
+                    };
+                    out.crossings.push(locate_upward(map, &step));
                 }
             }
         }

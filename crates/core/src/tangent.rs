@@ -315,6 +315,7 @@ impl<'h, H> TangentMap<'h, H> {
     /// `p` in an unspecified state, when the lanes would take different code paths (a scaled
     /// coefficient that is zero in some lanes only: h = 0 or underflow); the caller then steps
     /// the lanes one by one.
+    #[inline(always)]
     pub(crate) fn orbit_step_q_lanes<const N: usize, const L: usize>(
         &self,
         q: &mut [Lanes<L>; N],
@@ -324,18 +325,45 @@ impl<'h, H> TangentMap<'h, H> {
     where
         H: Hamiltonian<N>,
     {
-        let lanes = |f: &dyn Fn(f64) -> f64| Lanes::<L>::from_fn(|l| f(h[l]));
+        self.orbit_ops_lanes(q, p, h, 0..self.ops_moving_q())
+    }
+
+    /// [`TangentMap::orbit_step_rest`] in lanes, as [`TangentMap::orbit_step_q_lanes`].
+    #[inline(always)]
+    pub(crate) fn orbit_step_rest_lanes<const N: usize, const L: usize>(
+        &self,
+        q: &mut [Lanes<L>; N],
+        p: &mut [Lanes<L>; N],
+        h: &[f64; L],
+    ) -> bool
+    where
+        H: Hamiltonian<N>,
+    {
+        self.orbit_ops_lanes(q, p, h, self.ops_moving_q()..self.ops.len())
+    }
+
+    #[inline(always)]
+    fn orbit_ops_lanes<const N: usize, const L: usize>(
+        &self,
+        q: &mut [Lanes<L>; N],
+        p: &mut [Lanes<L>; N],
+        h: &[f64; L],
+        range: core::ops::Range<usize>,
+    ) -> bool
+    where
+        H: Hamiltonian<N>,
+    {
         let same = |x: &Lanes<L>| x.0.iter().all(|&v| (v != 0.0) == (x.0[0] != 0.0));
-        for &op in &self.ops[..self.ops_moving_q()] {
+        for &op in &self.ops[range] {
             match op {
                 Op::Drift(a) => {
-                    let a = lanes(&|h| a * h);
+                    let a = Lanes(h.map(|h| a * h));
                     for i in 0..N {
                         q[i] = p[i].mul_add(a, q[i]);
                     }
                 }
                 Op::Kick { b, gamma } => {
-                    let (b, c) = (lanes(&|h| b * h), lanes(&|h| gamma * h * h * h));
+                    let (b, c) = (Lanes(h.map(|h| b * h)), Lanes(h.map(|h| gamma * h * h * h)));
                     if !same(&b) || !same(&c) {
                         return false;
                     }

@@ -194,7 +194,7 @@ fn batched_lanes_stop_on_energy_drift_at_the_scalar_step() {
 /// scalar path).
 #[test]
 fn crossings_located_in_lanes_equal_scalar_ones() {
-    use salient_core::section::{locate_upward, locate_upward_lanes};
+    use salient_core::section::{locate_upward, locate_upward_lanes, CrossingStep};
     use salient_core::tangent::{Phase, Stepping};
     let ham = HenonHeiles;
     for scheme in ["sbab2c", "saba2c", "sbab1", "srkn14a", "aba864"] {
@@ -216,18 +216,33 @@ fn crossings_located_in_lanes_equal_scalar_ones() {
                 let (q0, p0) = (s.x.q, s.x.p);
                 s.advance();
                 if q0[0] < 0.0 && s.x.q[0] >= 0.0 {
-                    starts.push((q0, p0, n as f64 * tau));
+                    starts.push(CrossingStep {
+                        q: q0,
+                        p: p0,
+                        t: n as f64 * tau,
+                        q1_end: s.x.q[0],
+                    });
                 }
             }
         }
         // q1 a denormal below zero: h ≈ 1e-310, whose cube underflows to 0.
         let (q, p) = on_section(&ham, 0.125, &[0.1], &[0.05]).unwrap();
-        starts.insert(1, ([-1e-310, q[1]], p, 0.0));
+        let q1_end = tau * p[0];
+        let q = [-1e-310, q[1]];
+        starts.insert(
+            1,
+            CrossingStep {
+                q,
+                p,
+                t: 0.0,
+                q1_end,
+            },
+        );
         assert!(starts.len() > 40, "{scheme}: {}", starts.len());
         for chunk in starts.chunks(4) {
             let lanes = locate_upward_lanes::<_, 2, 4>(&map, chunk);
-            for (k, (q, p, t)) in chunk.iter().enumerate() {
-                let want = locate_upward(&map, q, p, *t);
+            for (k, step) in chunk.iter().enumerate() {
+                let want = locate_upward(&map, step);
                 let have = lanes[k];
                 let bits = |c: &salient_core::section::Crossing<2>| {
                     [c.t, c.q[0], c.q[1], c.p[0], c.p[1]].map(f64::to_bits)

@@ -15,7 +15,7 @@ use salient_core::orbit::{
 };
 use salient_core::run::{adaptive_orbits_per_thread, integrate_feed_adaptive, MethodRun};
 use salient_core::section::on_section;
-use salient_core::section::{locate_upward_lanes, Crossing};
+use salient_core::section::{locate_upward_lanes, Crossing, CrossingStep};
 use salient_core::{HenonHeiles, TangentMap};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Condvar, Mutex};
@@ -885,9 +885,7 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
 enum Event {
     Crossing {
         cell: u32,
-        q: [f64; 2],
-        p: [f64; 2],
-        t: f64,
+        step: CrossingStep<2>,
     },
     Finished {
         cell: u32,
@@ -1044,9 +1042,9 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for StepperFeed<'_, P> {
     fn locates_crossings(&self) -> bool {
         true
     }
-    fn crossing_step(&mut self, cell: usize, q: [f64; 2], p: [f64; 2], t: f64) {
+    fn crossing_step(&mut self, cell: usize, step: CrossingStep<2>) {
         let cell = cell as u32;
-        self.out.push(Event::Crossing { cell, q, p, t });
+        self.out.push(Event::Crossing { cell, step });
     }
     fn cancelled(&mut self, cell: usize) -> bool {
         self.pipe.send(&mut self.out);
@@ -1096,7 +1094,7 @@ fn locate_events<P: FnMut(&Ledger)>(
     let mut events = Vec::new();
     let mut queue = LocateQueue {
         owners: [0; LANES],
-        starts: [([0.0; 2], [0.0; 2], 0.0); LANES],
+        steps: [CrossingStep::ZERO; LANES],
         len: 0,
     };
     // Locates the queued crossings and books them as claims.
@@ -1105,7 +1103,7 @@ fn locate_events<P: FnMut(&Ledger)>(
         if n == 0 {
             return;
         }
-        let found = locate_upward_lanes::<_, 2, LANES>(map, &queue.starts[..n]);
+        let found = locate_upward_lanes::<_, 2, LANES>(map, &queue.steps[..n]);
         for (&from, c) in queue.owners[..n].iter().zip(&found) {
             if let Some(to) = engine.grid.cell_of(c.q[1], c.p[1]) {
                 book.crossed(engine.grid, engine.claims, from, to);
@@ -1131,8 +1129,8 @@ fn locate_events<P: FnMut(&Ledger)>(
         for (k, event) in events.drain(..).enumerate() {
             match event {
                 Event::Crossing { cell, .. } if !ending.contains(&cell) => deferred.push(event),
-                Event::Crossing { cell, q, p, t } => {
-                    if queue.push(cell, (q, p, t)) {
+                Event::Crossing { cell, step } => {
+                    if queue.push(cell, step) {
                         locate(&mut book, &mut queue);
                     }
                 }
@@ -1156,8 +1154,8 @@ fn locate_events<P: FnMut(&Ledger)>(
             }
         }
         for event in deferred.drain(..) {
-            if let Event::Crossing { cell, q, p, t } = event {
-                if queue.push(cell, (q, p, t)) {
+            if let Event::Crossing { cell, step } = event {
+                if queue.push(cell, step) {
                     locate(&mut book, &mut queue);
                 }
             }
@@ -1174,16 +1172,15 @@ fn locate_events<P: FnMut(&Ledger)>(
 /// Crossings waiting to be located together, one per SIMD lane.
 struct LocateQueue {
     owners: [u32; LANES],
-    starts: [([f64; 2], [f64; 2], f64); LANES],
+    steps: [CrossingStep<2>; LANES],
     len: usize,
 }
 
 impl LocateQueue {
-    /// Queues the crossing of `owner`'s orbit in the step that started at `start`; true when
-    /// the queue is full.
-    fn push(&mut self, owner: u32, start: ([f64; 2], [f64; 2], f64)) -> bool {
+    /// Queues the crossing of `owner`'s orbit in `step`; true when the queue is full.
+    fn push(&mut self, owner: u32, step: CrossingStep<2>) -> bool {
         self.owners[self.len] = owner;
-        self.starts[self.len] = start;
+        self.steps[self.len] = step;
         self.len += 1;
         self.len == LANES
     }
