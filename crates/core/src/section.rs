@@ -2,7 +2,7 @@
 
 use crate::hamiltonian::Hamiltonian;
 use crate::real::Lanes;
-use crate::tangent::TangentMap;
+use crate::tangent::{StepPart, TangentMap};
 
 /// A point where the orbit crosses q1 = 0 upwards (p1 > 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -130,13 +130,7 @@ pub fn locate_upward_lanes<H: Hamiltonian<N>, const N: usize, const L: usize>(
         // Lanes whose search is over re-evaluate their root; the result is ignored.
         let h = search.s.0;
         let (mut q, mut p) = (q0, p0);
-        step_lanes(
-            &mut q,
-            &mut p,
-            &h,
-            |q, p, h| map.orbit_step_q_lanes(q, p, h),
-            |q, p, h| map.orbit_step_q(q, p, h),
-        );
+        step_lanes(map, StepPart::MovingQ, &mut q, &mut p, &h);
         for l in 0..L {
             if search.live[l] {
                 for i in 0..N {
@@ -150,13 +144,7 @@ pub fn locate_upward_lanes<H: Hamiltonian<N>, const N: usize, const L: usize>(
         }
     }
     let h = search.s.0;
-    step_lanes(
-        &mut q_root,
-        &mut p_root,
-        &h,
-        |q, p, h| map.orbit_step_rest_lanes(q, p, h),
-        |q, p, h| map.orbit_step_rest(q, p, h),
-    );
+    step_lanes(map, StepPart::Rest, &mut q_root, &mut p_root, &h);
     core::array::from_fn(|l| Crossing {
         t: pick(l).t + h[l],
         q: core::array::from_fn(|i| q_root[i].0[l]),
@@ -164,24 +152,24 @@ pub fn locate_upward_lanes<H: Hamiltonian<N>, const N: usize, const L: usize>(
     })
 }
 
-/// Steps the lanes together with `lanes`, or (when that declines: the lanes' scaled
-/// coefficients are zero in some only) one by one with `scalar`, which performs the same
-/// operations.
-fn step_lanes<const N: usize, const L: usize>(
+/// Takes `part` of a step of size `h[l]` in every lane: all lanes together, or (when the
+/// lanes' scaled coefficients are zero in some only) one by one, with the same operations.
+#[inline(always)]
+fn step_lanes<H: Hamiltonian<N>, const N: usize, const L: usize>(
+    map: &TangentMap<'_, H>,
+    part: StepPart,
     q: &mut [Lanes<L>; N],
     p: &mut [Lanes<L>; N],
     h: &[f64; L],
-    lanes: impl FnOnce(&mut [Lanes<L>; N], &mut [Lanes<L>; N], &[f64; L]) -> bool,
-    scalar: impl Fn(&mut [f64; N], &mut [f64; N], f64),
 ) {
     let (q_in, p_in) = (*q, *p);
-    if lanes(q, p, h) {
+    if map.orbit_step_part_lanes(q, p, h, part) {
         return;
     }
     for l in 0..L {
         let mut ql: [f64; N] = core::array::from_fn(|i| q_in[i].0[l]);
         let mut pl: [f64; N] = core::array::from_fn(|i| p_in[i].0[l]);
-        scalar(&mut ql, &mut pl, h[l]);
+        map.orbit_step_part(&mut ql, &mut pl, h[l], part);
         for i in 0..N {
             q[i].0[l] = ql[i];
             p[i].0[l] = pl[i];

@@ -215,6 +215,16 @@ pub struct TangentMap<'h, H> {
     alternating: Option<(bool, Vec<f64>)>,
 }
 
+/// The two parts of one orbit step that a crossing search takes separately.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum StepPart {
+    /// Every sub-map up to the last one that moves q, so q is final (a root search on q1 needs
+    /// nothing more).
+    MovingQ,
+    /// The rest: a final kick, if the scheme ends with one.
+    Rest,
+}
+
 /// Whether `body` alternates drifts and plain kicks, and if so its coefficients.
 fn alternating_shape(body: &[SubMap]) -> Option<(bool, Vec<f64>)> {
     let drift_first = body.first()?.is_drift();
@@ -292,54 +302,46 @@ impl<'h, H> TangentMap<'h, H> {
         }
     }
 
-    /// The first part of [`TangentMap::orbit_step`]: every sub-map up to the last one that
-    /// moves q, so q is final (a root search on q1 needs nothing more).
-    pub(crate) fn orbit_step_q<const N: usize>(&self, q: &mut [f64; N], p: &mut [f64; N], h: f64)
-    where
-        H: Hamiltonian<N>,
-    {
-        self.orbit_ops(q, p, h, 0..self.ops_moving_q());
+    /// The sub-maps of one step that make up `part`.
+    #[inline(always)]
+    fn part_range(&self, part: StepPart) -> core::ops::Range<usize> {
+        match part {
+            StepPart::MovingQ => 0..self.ops_moving_q(),
+            StepPart::Rest => self.ops_moving_q()..self.ops.len(),
+        }
     }
 
-    /// The rest of [`TangentMap::orbit_step`] after [`TangentMap::orbit_step_q`]: together they
-    /// perform exactly the operations of the whole step.
-    pub(crate) fn orbit_step_rest<const N: usize>(&self, q: &mut [f64; N], p: &mut [f64; N], h: f64)
-    where
+    /// `part` of [`TangentMap::orbit_step`]: the two parts in turn perform exactly the
+    /// operations of the whole step.
+    pub(crate) fn orbit_step_part<const N: usize>(
+        &self,
+        q: &mut [f64; N],
+        p: &mut [f64; N],
+        h: f64,
+        part: StepPart,
+    ) where
         H: Hamiltonian<N>,
     {
-        self.orbit_ops(q, p, h, self.ops_moving_q()..self.ops.len());
+        self.orbit_ops(q, p, h, self.part_range(part));
     }
 
-    /// [`TangentMap::orbit_step_q`] for `L` orbits with their own step sizes, one per SIMD
+    /// [`TangentMap::orbit_step_part`] for `L` orbits with their own step sizes, one per SIMD
     /// lane, each lane performing exactly the scalar operations. Returns false, with `q` and
     /// `p` in an unspecified state, when the lanes would take different code paths (a scaled
     /// coefficient that is zero in some lanes only: h = 0 or underflow); the caller then steps
     /// the lanes one by one.
     #[inline(always)]
-    pub(crate) fn orbit_step_q_lanes<const N: usize, const L: usize>(
+    pub(crate) fn orbit_step_part_lanes<const N: usize, const L: usize>(
         &self,
         q: &mut [Lanes<L>; N],
         p: &mut [Lanes<L>; N],
         h: &[f64; L],
+        part: StepPart,
     ) -> bool
     where
         H: Hamiltonian<N>,
     {
-        self.orbit_ops_lanes(q, p, h, 0..self.ops_moving_q())
-    }
-
-    /// [`TangentMap::orbit_step_rest`] in lanes, as [`TangentMap::orbit_step_q_lanes`].
-    #[inline(always)]
-    pub(crate) fn orbit_step_rest_lanes<const N: usize, const L: usize>(
-        &self,
-        q: &mut [Lanes<L>; N],
-        p: &mut [Lanes<L>; N],
-        h: &[f64; L],
-    ) -> bool
-    where
-        H: Hamiltonian<N>,
-    {
-        self.orbit_ops_lanes(q, p, h, self.ops_moving_q()..self.ops.len())
+        self.orbit_ops_lanes(q, p, h, self.part_range(part))
     }
 
     #[inline(always)]
