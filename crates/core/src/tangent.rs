@@ -341,22 +341,8 @@ impl<'h, H> TangentMap<'h, H> {
     where
         H: Hamiltonian<N>,
     {
-        self.orbit_ops_lanes(q, p, h, self.part_range(part))
-    }
-
-    #[inline(always)]
-    fn orbit_ops_lanes<const N: usize, const L: usize>(
-        &self,
-        q: &mut [Lanes<L>; N],
-        p: &mut [Lanes<L>; N],
-        h: &[f64; L],
-        range: core::ops::Range<usize>,
-    ) -> bool
-    where
-        H: Hamiltonian<N>,
-    {
         let same = |x: &Lanes<L>| x.0.iter().all(|&v| (v != 0.0) == (x.0[0] != 0.0));
-        for &op in &self.ops[range] {
+        for &op in &self.ops[self.part_range(part)] {
             match op {
                 Op::Drift(a) => {
                     let a = Lanes(h.map(|h| a * h));
