@@ -99,6 +99,13 @@ pub fn in_band(n2: f64) -> bool {
     n2 < RESCALE_ABOVE && n2 > RESCALE_BELOW
 }
 
+/// The lanes whose squared norm lies outside [`in_band`]'s band (or is NaN), as bits.
+#[inline(always)]
+pub fn out_of_band_bits<const L: usize>(n2: crate::real::Lanes<L>) -> u64 {
+    use crate::real::Real;
+    n2.not_lt_bits(Real::splat(RESCALE_ABOVE)) | n2.not_gt_bits(Real::splat(RESCALE_BELOW))
+}
+
 /// GALI_k for k = 2..=vectors.len(): the volume spanned by the first k normalised deviation
 /// vectors, as the product of |R_ii| of a Householder QR (never a Gram determinant, whose square
 /// loses everything below ~1e-8).
