@@ -32,6 +32,7 @@ fn main() {
     let only = std::env::args().nth(1);
     if only.as_deref() != Some("8") {
         run::<4>(Isa::Pinned);
+        run::<4>(Isa::detect());
     }
     if only.as_deref() != Some("4") {
         run::<8>(Isa::detect());

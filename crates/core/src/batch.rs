@@ -290,7 +290,8 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
 
 /// The instruction sets the batched driver can be compiled for. The build pins x86-64-v3
 /// (AVX2 + FMA) for every crate; hosts with AVX-512 also run a copy of the driver compiled
-/// for it (32 vector registers, 8 lanes in one register), chosen at run time. Both perform
+/// for it (32 vector registers; 8 lanes in one register, or 4 lanes whose whole state fits in
+/// registers), chosen at run time. Both perform
 /// the same IEEE operations in the same order in every lane (Rust never reassociates or
 /// contracts floating-point arithmetic, and the AVX-512 forms of add, multiply, FMA, divide,
 /// square root and compare round exactly as the AVX2 ones), so the choice changes speed,
@@ -337,8 +338,11 @@ impl Isa {
 
     /// Lanes per batch that suit this instruction set: one vector register per variable.
     /// `cargo run --release -p salient-core --example batch_profile` (2026-11-24, AVX-512
-    /// host): 8 lanes in AVX-512 3.55–3.95 ns per orbit-step; 4 lanes 6.3–6.7 ns pinned and
-    /// 8.0 ns in AVX-512; 8 lanes pinned 6.7 ns (16 registers cannot hold two groups of four).
+    /// host): 8 lanes in AVX-512 3.55–3.95 ns per orbit-step; 8 lanes pinned 6.7 ns (16
+    /// registers cannot hold two groups of four). 4 lanes (2026-11-26, after their arithmetic
+    /// became explicit AVX vectors): 6.9 ns pinned, 4.4 ns in the AVX-512 copy (32 registers
+    /// hold the state and the increments without spills; 8.0 ns before, when LLVM's
+    /// vectoriser split the step).
     pub fn lanes(self) -> usize {
         match self {
             Isa::Pinned => 4,
@@ -361,8 +365,8 @@ pub fn integrate_feed<H: Hamiltonian<N>, const N: usize, const K: usize, const L
 }
 
 /// [`integrate_feed`] with the instruction set chosen by the caller. The AVX-512 copy serves
-/// 8 lanes or more (it measured slower than the pinned one for 4, see [`Isa::lanes`]); an
-/// `isa` the host lacks falls back to [`Isa::Pinned`].
+/// 4 lanes or more (see [`Isa::lanes`] for the speeds); an `isa` the host lacks falls back to
+/// [`Isa::Pinned`].
 pub fn integrate_feed_on<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
     isa: Isa,
     map: &TangentMap<'_, H>,
@@ -371,7 +375,7 @@ pub fn integrate_feed_on<H: Hamiltonian<N>, const N: usize, const K: usize, cons
     feed: &mut impl BatchFeed<N>,
 ) {
     #[cfg(target_arch = "x86_64")]
-    if isa == Isa::Avx512 && L >= 8 && isa.available() {
+    if isa == Isa::Avx512 && L >= 4 && isa.available() {
         // SAFETY: the host has every feature the function is compiled for (checked above).
         return unsafe { feed_loop_avx512::<H, N, K, L>(map, config, requests, feed) };
     }

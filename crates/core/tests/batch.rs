@@ -154,20 +154,36 @@ fn the_avx512_driver_equals_the_pinned_one_bit_for_bit() {
     for (scheme, tau) in [("sbab2c", 0.05), ("saba2c", 0.5), ("srkn14a", 0.25)] {
         let map = TangentMap::new(&ham, &Scheme::by_name(scheme).unwrap(), tau);
         let cfg = OrbitConfig::new(tau, 2000.0);
-        let run = |isa| {
+        fn run<const L: usize>(
+            isa: Isa,
+            map: &TangentMap<'_, HenonHeiles>,
+            ics: &[([f64; 2], [f64; 2])],
+            cfg: &OrbitConfig,
+            requests: &Requests,
+        ) -> Vec<Option<OrbitResult<2>>> {
             let mut got = vec![None; ics.len()];
-            integrate_batch_on::<_, 2, 2, 8>(isa, &map, &ics, &cfg, &requests, |i, r| {
-                got[i] = Some(r)
-            });
+            integrate_batch_on::<_, 2, 2, L>(isa, map, ics, cfg, requests, |i, r| got[i] = Some(r));
             got
-        };
-        let (wide, pinned) = (run(Isa::Avx512), run(Isa::Pinned));
-        for (i, (a, b)) in wide.iter().zip(&pinned).enumerate() {
-            let (a, b) = (a.as_ref().unwrap(), b.as_ref().unwrap());
-            assert!(
-                same_bits(a, b),
-                "{scheme} orbit {i}:\n avx512 {a:?}\n pinned {b:?}"
-            );
+        }
+        // 8 lanes (one 512-bit vector each) and 4 (the 256-bit form with 32 registers).
+        let pairs = [
+            (
+                run::<8>(Isa::Avx512, &map, &ics, &cfg, &requests),
+                run::<8>(Isa::Pinned, &map, &ics, &cfg, &requests),
+            ),
+            (
+                run::<4>(Isa::Avx512, &map, &ics, &cfg, &requests),
+                run::<4>(Isa::Pinned, &map, &ics, &cfg, &requests),
+            ),
+        ];
+        for (wide, pinned) in &pairs {
+            for (i, (a, b)) in wide.iter().zip(pinned).enumerate() {
+                let (a, b) = (a.as_ref().unwrap(), b.as_ref().unwrap());
+                assert!(
+                    same_bits(a, b),
+                    "{scheme} orbit {i}:\n avx512 {a:?}\n pinned {b:?}"
+                );
+            }
         }
     }
 }

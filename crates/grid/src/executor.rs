@@ -24,20 +24,18 @@ use std::sync::{Condvar, Mutex};
 /// in which schedulers size their batches (see [`lanes`] for what runs).
 pub const LANES: usize = 4;
 
-/// Below this step, fast PSS also takes the host's lane count.
-const WIDE_FAST_PSS_BELOW_TAU: f64 = 0.02;
-
-/// Orbits advanced together in one batched stepper in `mode` at step `tau`. Full mode takes
-/// what suits the host ([`Isa::lanes`]: 8 with AVX-512). In fast PSS the lanes in flight bound
-/// the speculation: 8 lanes step faster (3.8 instead of 6.7 ns per orbit-step) but drop
-/// 35–50 % more steps, which pays only where the steps outweigh the per-crossing work, i.e.
-/// at small τ. 400×400, t = 1e4, 2 threads, 4 against 8 lanes (2026-11-24, AVX-512 host):
-/// τ = 0.01 4.27 vs 3.6–3.8 s, 0.02 2.29 vs 2.33 s, 0.05 1.06 vs 1.08 s, 0.1 0.67 vs 0.78 s,
-/// 0.5 0.32 vs 0.44 s.
-pub fn lanes(mode: Mode, tau: f64) -> usize {
+/// Orbits advanced together in one batched stepper in `mode`. Full mode takes what suits the
+/// host ([`Isa::lanes`]: 8 with AVX-512). In fast PSS the lanes in flight bound the
+/// speculation, so it takes [`LANES`] (4) on every host: 8 lanes step faster per orbit-step
+/// but drop more steps. Until 2026-11-26 fast PSS took 8 lanes below τ = 0.02, where 8 AVX-512
+/// lanes (3.8 ns per orbit-step) beat 4 pinned ones (6.7 ns) despite dropping 45 % of their
+/// steps; since 4 lanes also run in the AVX-512 copy (4.4 ns), 4 win there too: 400×400,
+/// τ = 0.01, t = 1e4, 2 threads, 3.63–4.40 s against 4.34–4.80 s (alternated), 29 % of the
+/// steps dropped instead of 45 %, the same labels.
+pub fn lanes(mode: Mode) -> usize {
     match mode {
-        Mode::FastPss if tau >= WIDE_FAST_PSS_BELOW_TAU => LANES,
-        _ => Isa::detect().lanes(),
+        Mode::FastPss => LANES,
+        Mode::Full => Isa::detect().lanes(),
     }
 }
 
@@ -49,7 +47,7 @@ fn drive(
     mode: Mode,
     feed: &mut impl BatchFeed<2>,
 ) {
-    match lanes(mode, map.tau()) {
+    match lanes(mode) {
         8 => integrate_feed::<_, 2, 2, 8>(map, config, requests, feed),
         _ => integrate_feed::<_, 2, 2, LANES>(map, config, requests, feed),
     }
@@ -425,7 +423,7 @@ pub fn integrate_cells(grid: &Grid, cell_run: &CellRun, mode: Mode, cells: &[u32
             let c = &cell_run.config;
             adaptive_orbits_per_thread(&cell_run.run.method, c.tau, c.t_final)
         },
-        |m| lanes(mode, m.tau()),
+        |_| lanes(mode),
     );
     let cursor = AtomicUsize::new(0);
     let drivers = rayon::current_num_threads().min(cells.len().div_ceil(per_driver));
