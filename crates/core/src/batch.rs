@@ -593,8 +593,8 @@ struct Flags {
 /// state made the compiler reload it in pieces that defeat store forwarding) and `q1_prev`
 /// holds q1 before the step.
 ///
-/// Two forms of the same conditions. With 4 lanes (the pinned target level) each condition is
-/// one vector compare and a mask extraction, so a step where no lane needs anything costs no
+/// Two forms of the same conditions. With 4 lanes (one 256-bit vector) each condition is one
+/// vector compare and a mask extraction, so a step where no lane needs anything costs no
 /// per-lane work: the element-wise form was a fifth of the stepping thread's time at τ = 0.5.
 /// With it (and [`Lanes`]' 4-lane arithmetic written as AVX vectors), 400×400, τ = 0.5,
 /// t = 1e4 went from 0.321 to 0.285 s with 2 threads and from 0.398 to 0.351 s with 1 (medians
