@@ -472,9 +472,10 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
             only_aligned,
             only_crossed,
         } = screen(ham, &x, &mut st, &screen_rules, &q_prev[0]);
-        let (all, active) = (lane_bits::<L>(|_| true), lane_bits::<L>(|l| st.active[l]));
         let full_poll = step.is_multiple_of(poll);
-        if full_poll || (step.is_multiple_of(IDLE_POLL) && !st.exhausted && active != all) {
+        if full_poll
+            || (step.is_multiple_of(IDLE_POLL) && !st.exhausted && st.active.iter().any(|&a| !a))
+        {
             for l in 0..L {
                 let cancel = match st.jobs[l].as_ref() {
                     Some(j) => full_poll && feed.cancelled(j.id),
