@@ -102,7 +102,7 @@ fn main() {
         let (job, _) = s.submit(&json).unwrap();
         while !s.is_finished(job).unwrap() {
             if k % group == 0 {
-                s.begin_group().unwrap();
+                s.begin_group();
             }
             let w = k % workers.len();
             k += 1;
@@ -150,13 +150,15 @@ fn main() {
                 }
             }
             if k % group == 0 {
-                s.commit_group().unwrap();
+                s.commit_group(Vec::new());
             }
         }
     }
     if k % group != 0 {
-        s.commit_group().unwrap();
+        s.commit_group(Vec::new());
     }
+    // Every group committed: the store thread commits behind the loop.
+    s.sync_store();
     let (wall, cpu) = (t0.elapsed().as_secs_f64(), cpu_seconds() - c0);
     println!(
         "mode {mode}, {visited} visited per outcome, {group} polls per transaction, {jobs} jobs, \

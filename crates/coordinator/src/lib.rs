@@ -5,6 +5,7 @@
 //! the store before the answer goes out. It never integrates an orbit.
 
 pub mod scheduler;
+mod writer;
 
 use salient_proto::v1;
 use salient_proto::v1::client_service_server::{ClientService, ClientServiceServer};
@@ -60,8 +61,7 @@ const GROUP: usize = 64;
 
 type Watchers = Vec<(u64, mpsc::Sender<Result<v1::JobStatus, Status>>)>;
 
-/// An answer held until the group's transaction is committed.
-type Deferred = Box<dyn FnOnce() + Send>;
+use writer::Deferred;
 
 fn defer<T: Send + 'static>(tx: Reply<T>, r: Result<T, Status>) -> Deferred {
     Box::new(move || drop(tx.send(r)))
@@ -69,7 +69,9 @@ fn defer<T: Send + 'static>(tx: Reply<T>, r: Result<T, Status>) -> Deferred {
 
 /// The loop: owns the scheduler, answers events in arrival order. Events that queued up while
 /// it worked are handled together in one store transaction (group commit: one fsync for a
-/// burst of reports and leases), and their answers go out only after it is committed.
+/// burst of reports and leases), and their answers go out only after it is committed. The
+/// commit happens on the store thread ([`writer`]), so the loop goes on with the next events
+/// meanwhile.
 fn event_loop(mut s: Scheduler, mut rx: mpsc::Receiver<Event>, progress_every: Duration) {
     let mut watchers: Watchers = Vec::new();
     let mut last_progress = Instant::now();
@@ -81,10 +83,7 @@ fn event_loop(mut s: Scheduler, mut rx: mpsc::Receiver<Event>, progress_every: D
                 Err(_) => break,
             }
         }
-        if let Err(e) = s.begin_group() {
-            tracing::error!(error = %e, "the store cannot start a transaction; stopping");
-            std::process::exit(1);
-        }
+        s.begin_group();
         let mut answers: Vec<Deferred> = Vec::with_capacity(batch.len());
         for ev in batch {
             handle(
@@ -96,15 +95,7 @@ fn event_loop(mut s: Scheduler, mut rx: mpsc::Receiver<Event>, progress_every: D
                 progress_every,
             );
         }
-        if let Err(e) = s.commit_group() {
-            // The in-memory state is ahead of the store: stop without acknowledging; a
-            // restart resumes from what was committed.
-            tracing::error!(error = %e, "the store cannot commit; stopping");
-            std::process::exit(1);
-        }
-        for answer in answers {
-            answer();
-        }
+        s.commit_group(answers);
     }
 }
 
@@ -119,7 +110,11 @@ fn handle(
     match ev {
         Event::Submit(spec, tx) => answers.push(defer(tx, s.submit(&spec))),
         Event::Register(r, tx) => answers.push(defer(tx, s.register(&r))),
-        Event::Poll(r, tx) => answers.push(defer(tx, s.poll(&r))),
+        // A poll's reply acknowledges only reports already committed (the others' answers
+        // are owed to a later reply, see `Scheduler::poll`), so it goes out before the
+        // group's commit: a worker waiting for cells waits for no fsync. Its leases' attempts
+        // may thus be lost in a crash; the scheduler never numbers one again after a restart.
+        Event::Poll(r, tx) => drop(tx.send(s.poll(&r))),
         Event::Renew(r, tx) => answers.push(defer(tx, s.renew_only(&r))),
         Event::Report(r, tx) => answers.push(defer(tx, s.report(&r))),
         Event::Deregister(r, tx) => answers.push(defer(tx, s.deregister(&r))),

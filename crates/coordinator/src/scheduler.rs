@@ -1,14 +1,17 @@
 //! The scheduler state and every transition of it, synchronous and free of networking so it
-//! can be driven by the event loop and by tests alike. Each mutating call writes to the store
-//! before it returns, so the caller may acknowledge afterwards.
+//! can be driven by the event loop and by tests alike. Outside a group each mutating call has
+//! committed its writes when it returns, so the caller may acknowledge afterwards; inside one
+//! ([`Scheduler::begin_group`]) the writes are committed by the store thread, which then
+//! releases the group's answers.
 
+use crate::writer::{Deferred, StoreThread, Write};
 use prost::bytes::Bytes;
 use prost::Message;
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::{Grid, Ledger};
 use salient_proto::v1;
 use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
-use salient_store::{JobState, Report, Store, StoreError};
+use salient_store::{JobState, Store, StoreError};
 use std::cell::RefCell;
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -65,6 +68,9 @@ struct WorkerInfo {
     threads: u32,
     last_seen: Instant,
     leases: BTreeSet<TileKey>,
+    /// Answers to reports this worker sent, each with the store group that makes it durable
+    /// (see [`Scheduler::poll`]), in the order the reports came: stale ones flagged.
+    owed: Vec<(u64, v1::TileRef, bool)>,
 }
 
 struct ActiveLease {
@@ -77,8 +83,20 @@ struct ActiveLease {
 
 #[derive(Default)]
 struct Tile {
-    /// The latest attempt issued (0: never leased).
+    /// The highest attempt that may have been issued (0: never leased); the next lease takes
+    /// the number after it.
     attempt: u32,
+    /// The attempt whose reports count: the latest issued, or the one a worker held through
+    /// a restart and got back. Reports of any other are stale.
+    valid: u32,
+    /// Loaded from the store and not leased since. Leases are answered before their attempt
+    /// is committed, so a crash may have lost the latest one issued: `attempt` is one past
+    /// the stored number (never issued twice), and a worker naming either gets its lease
+    /// back.
+    restored: bool,
+    /// The last lease lapsed or its worker was forgotten (it fell silent), and none was
+    /// issued since: a worker that comes back naming it gets it back.
+    lapsed: bool,
     lease: Option<ActiveLease>,
     /// The run ledger's [`Ledger::reopenings`] when the tile was last found without wanted
     /// cells: while it is unchanged the tile has none, and the lease search passes it by
@@ -202,7 +220,7 @@ impl Run {
 
 /// Every job, worker and lease the coordinator knows, with the store behind it.
 pub struct Scheduler {
-    store: Store,
+    store: StoreThread,
     instance: String,
     cfg: Config,
     jobs: BTreeMap<u64, Job>,
@@ -221,6 +239,8 @@ impl Scheduler {
     /// outcomes (nothing committed is integrated again).
     pub fn new(store: Store, cfg: Config) -> Result<Scheduler, String> {
         let instance = store.instance_id().map_err(|e| e.to_string())?;
+        let store =
+            StoreThread::new(store).map_err(|e| format!("starting the store thread: {e}"))?;
         let mut s = Scheduler {
             instance,
             store,
@@ -299,6 +319,11 @@ impl Scheduler {
                 t.attempt = attempt;
             }
         }
+        for t in runs.iter_mut().flat_map(|r| r.tiles.iter_mut()) {
+            t.valid = t.attempt;
+            t.attempt += 1;
+            t.restored = true;
+        }
         Ok(Job {
             id,
             name: row.name,
@@ -364,6 +389,7 @@ impl Scheduler {
                 threads: req.threads,
                 last_seen: Instant::now(),
                 leases: BTreeSet::new(),
+                owed: Vec::new(),
             },
         );
         Ok(v1::RegisterReply {
@@ -462,8 +488,8 @@ impl Scheduler {
             let run_index = lease.run as usize;
             let run = &mut job.runs[run_index];
             let tile = &mut run.tiles[lease.tile as usize];
-            if lease.attempt < tile.attempt || job.state.is_terminal() {
-                if lease.attempt < tile.attempt {
+            if lease.attempt != tile.valid || job.state.is_terminal() {
+                if lease.attempt != tile.valid {
                     job.stale_reports += 1;
                     run.extra_dropped_orbits += r.outcomes.len() as u64;
                     let steps = r
@@ -501,17 +527,15 @@ impl Scheduler {
                 .map(|(o, checked)| (o, Bytes::from(o.encode_to_vec()), checked))
                 .collect();
             if !fresh.is_empty() {
-                let blobs: Vec<(u32, &[u8])> =
-                    fresh.iter().map(|(o, b, _)| (o.cell, &b[..])).collect();
                 self.store
-                    .commit_report(&Report {
+                    .write(Write::Report {
                         job: lease.job,
                         run: lease.run,
                         tile: lease.tile,
                         attempt: lease.attempt,
-                        worker,
+                        worker: worker.to_string(),
                         cpu_ns: r.cpu_ns,
-                        outcomes: &blobs,
+                        outcomes: fresh.iter().map(|(o, b, _)| (o.cell, b.clone())).collect(),
                     })
                     .map_err(store_err)?;
                 run.cpu_ns = run.cpu_ns.saturating_add(r.cpu_ns);
@@ -662,6 +686,9 @@ impl Scheduler {
         }
         run.started.get_or_insert_with(Instant::now);
         tile.attempt = attempt;
+        tile.valid = attempt;
+        tile.restored = false;
+        tile.lapsed = false;
         tile.lease = Some(ActiveLease {
             worker: worker.to_string(),
             deadline: Instant::now() + self.cfg.lease,
@@ -706,8 +733,15 @@ impl Scheduler {
                 continue;
             };
             match &mut tile.lease {
-                Some(l) if l.worker == worker && h.attempt == tile.attempt => l.deadline = deadline,
-                None if h.attempt == tile.attempt && h.attempt > 0 => {
+                Some(l) if l.worker == worker && h.attempt == tile.valid => l.deadline = deadline,
+                None if h.attempt > 0
+                    && ((tile.lapsed && h.attempt == tile.valid)
+                        || (tile.restored
+                            && (h.attempt == tile.valid || h.attempt == tile.attempt))) =>
+                {
+                    tile.valid = h.attempt;
+                    tile.restored = false;
+                    tile.lapsed = false;
                     tile.lease = Some(ActiveLease {
                         worker: worker.to_string(),
                         deadline,
@@ -718,6 +752,9 @@ impl Scheduler {
                         w.leases.insert(key);
                     }
                 }
+                // Ended here (its finishing report applied) while the worker still names
+                // it: nothing to renew, and its reports still count.
+                None if h.attempt == tile.valid => {}
                 _ => revoked.push(*h),
             }
         }
@@ -839,7 +876,7 @@ impl Scheduler {
             if !cells.is_empty() {
                 lease.skipped.extend(&cells);
                 out.push(v1::Skip {
-                    lease: Some(tile_ref(key, tile.attempt)),
+                    lease: Some(tile_ref(key, tile.valid)),
                     cells,
                 });
             }
@@ -874,14 +911,43 @@ impl Scheduler {
                 leases.push(self.lease(worker, key, cells)?);
             }
         }
+        let (acknowledged, stale) = self.owed_answers(worker, replies);
         Ok(v1::PollReply {
             leases,
             revoked,
             skips: self.skips(worker),
-            acknowledged: replies.acknowledged,
-            stale: replies.stale,
+            acknowledged,
+            stale,
             relays: self.relays(worker, &req.relayed),
         })
+    }
+
+    /// The answers a poll's reply may carry. The event loop sends a poll's reply before the
+    /// group it belongs to is committed, so that a worker waiting for cells does not wait for
+    /// an fsync; the answers to the reports it carried are therefore owed, each until its
+    /// group is durable, and go out with a later reply to the same worker (in the order the
+    /// reports came, which the worker relies on). Outside a group the writes are durable
+    /// already and the answers go at once.
+    fn owed_answers(&mut self, worker: &str, now: Replies) -> (Vec<v1::TileRef>, Vec<v1::TileRef>) {
+        let group = self.store.pending_group();
+        let durable = self.store.durable_group();
+        let Some(w) = self.workers.get_mut(worker) else {
+            return (now.acknowledged, now.stale);
+        };
+        w.owed
+            .extend(now.acknowledged.into_iter().map(|l| (group, l, false)));
+        w.owed
+            .extend(now.stale.into_iter().map(|l| (group, l, true)));
+        let due = w.owed.iter().take_while(|&&(g, _, _)| g <= durable).count();
+        let (mut acknowledged, mut stale) = (Vec::new(), Vec::new());
+        for (_, lease, is_stale) in w.owed.drain(..due) {
+            if is_stale {
+                stale.push(lease);
+            } else {
+                acknowledged.push(lease);
+            }
+        }
+        (acknowledged, stale)
     }
 
     pub fn report(&mut self, req: &v1::ReportRequest) -> Result<v1::ReportReply, Status> {
@@ -923,6 +989,8 @@ impl Scheduler {
             {
                 if tile.lease.as_ref().is_some_and(|l| l.worker == id) {
                     tile.lease = None;
+                    // A worker taken for lost that comes back gets it again.
+                    tile.lapsed = true;
                 }
             }
         }
@@ -936,6 +1004,7 @@ impl Scheduler {
                 for (t, tile) in run.tiles.iter_mut().enumerate() {
                     if tile.lease.as_ref().is_some_and(|l| l.deadline < now) {
                         let l = tile.lease.take().expect("checked");
+                        tile.lapsed = true;
                         tracing::warn!(job = job.id, run = r, tile = t, attempt = tile.attempt, worker = %l.worker, "lease lapsed");
                         if let Some(w) = self.workers.get_mut(&l.worker) {
                             w.leases.remove(&(job.id, r as u32, t as u32));
@@ -1167,13 +1236,20 @@ impl Scheduler {
     }
 
     /// Starts a group of calls whose store writes share one transaction (one fsync).
-    pub fn begin_group(&mut self) -> Result<(), String> {
-        self.store.begin_group().map_err(|e| e.to_string())
+    pub fn begin_group(&mut self) {
+        self.store.begin_group();
     }
 
-    /// Commits the group; only then may its calls' answers go out.
-    pub fn commit_group(&mut self) -> Result<(), String> {
-        self.store.commit_group().map_err(|e| e.to_string())
+    /// Ends the group: the store thread commits its writes and then sends the answers in
+    /// `then`, while this thread goes on (a store error there stops the process before any
+    /// of them goes out).
+    pub fn commit_group(&mut self, then: Vec<Deferred>) {
+        self.store.commit_group(then);
+    }
+
+    /// Waits until every write so far is committed.
+    pub fn sync_store(&self) {
+        self.store.sync();
     }
 
     /// Forgets finished jobs' in-memory state (the store keeps them).

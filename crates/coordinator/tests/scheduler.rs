@@ -508,3 +508,78 @@ fn bad_specs_from_the_wire_are_refused_with_the_field_named() {
     }
     assert!(s.status(None).unwrap().jobs.is_empty());
 }
+
+/// A poll's reply goes out before its group is committed, so the answers to the reports it
+/// carried come with a later reply, once the group is durable, and only once.
+#[test]
+fn answers_to_a_grouped_poll_wait_until_its_group_is_durable() {
+    let json = spec_json("full", r#""tm-sbab2c""#);
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    s.submit(&json).unwrap();
+    let w = register(&mut s);
+    let lease = lease_one(&mut s, &w);
+    let poll = |s: &mut Scheduler, reports: Vec<v1::TileReport>| {
+        s.poll(&v1::PollRequest {
+            worker_id: w.clone(),
+            reports,
+            ..Default::default()
+        })
+        .unwrap()
+    };
+    s.begin_group();
+    let reply = poll(&mut s, vec![work(&lease, &HashSet::new())]);
+    assert!(reply.acknowledged.is_empty() && reply.stale.is_empty());
+    s.commit_group(Vec::new());
+    s.sync_store();
+    let reply = poll(&mut s, Vec::new());
+    assert_eq!(reply.acknowledged, vec![lease.lease.unwrap()]);
+    assert!(poll(&mut s, Vec::new()).acknowledged.is_empty());
+}
+
+/// Leases are answered before their attempt is committed, so after a restart the number
+/// after the stored one may be held by a worker: it is never issued again, and a worker
+/// naming either gets its lease back.
+#[test]
+fn a_restarted_scheduler_never_issues_an_attempt_number_twice() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("c.db");
+    let json = spec_json("full", r#""tm-sbab2c""#);
+    let first = {
+        let mut s = Scheduler::new(Store::open(&db).unwrap(), config()).unwrap();
+        s.submit(&json).unwrap();
+        let w = register(&mut s);
+        lease_one(&mut s, &w).lease.unwrap()
+    };
+    assert_eq!(first.attempt, 1);
+    for named in [1, 2] {
+        let mut s = Scheduler::new(Store::open(&db).unwrap(), config()).unwrap();
+        let w = register(&mut s);
+        let reply = s
+            .poll(&v1::PollRequest {
+                worker_id: w.clone(),
+                held: vec![v1::TileRef {
+                    attempt: named,
+                    ..first
+                }],
+                ..Default::default()
+            })
+            .unwrap();
+        assert!(reply.revoked.is_empty(), "attempt {named} taken back");
+    }
+    let mut s = Scheduler::new(Store::open(&db).unwrap(), config()).unwrap();
+    let w = register(&mut s);
+    let again = lease_one(&mut s, &w).lease.unwrap();
+    assert_eq!((again.tile, again.attempt), (first.tile, 3));
+    let other = register(&mut s);
+    let stale = s
+        .poll(&v1::PollRequest {
+            worker_id: other,
+            held: vec![v1::TileRef {
+                attempt: 2,
+                ..first
+            }],
+            ..Default::default()
+        })
+        .unwrap();
+    assert_eq!(stale.revoked.len(), 1);
+}

@@ -347,6 +347,12 @@ impl Store {
         Ok(())
     }
 
+    /// Abandons the group started by [`Store::begin_group`]: none of its writes stay.
+    pub fn rollback_group(&mut self) -> Result<()> {
+        self.conn.execute_batch("ROLLBACK")?;
+        Ok(())
+    }
+
     /// In ONE transaction: a row for the report (job, run, tile, attempt, worker, cpu_ns, number
     /// of new outcomes) and each outcome with INSERT OR IGNORE on (job, run, cell) so a cell
     /// keeps its first outcome. Returns how many outcomes were new.

@@ -123,6 +123,12 @@ const MAX_BUILT_RUNS: usize = 4;
 /// coordinator's message limit.
 const POLL_REPORT_BYTES: usize = 4 << 20;
 
+/// How long a sent report may wait for its answer before it is sent again. Answers come with
+/// the next poll after the coordinator's commit, milliseconds later; one missing this long
+/// was lost with a coordinator that stopped before committing it (a restart is caught
+/// sooner, by its NOT_FOUND).
+const UNANSWERED_RESEND: Duration = Duration::from_secs(10);
+
 /// A lease handed to the compute thread.
 struct Work {
     lease: v1::TileRef,
@@ -709,6 +715,11 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
     let mut one_at_a_time = true;
     let mut hungry_compute = false;
     let mut outbox: Vec<v1::TileReport> = Vec::new();
+    // Reports sent and not yet answered, in the order sent. The coordinator answers a poll
+    // before committing what it carried, so the answers to its reports come with a later
+    // reply, in the order the reports came: each answer for a lease is the answer to the
+    // oldest report of that lease waiting here.
+    let mut awaiting: VecDeque<(std::time::Instant, v1::TileReport)> = VecDeque::new();
     let mut released: Vec<v1::TileRef> = Vec::new();
     let mut backoff = Duration::from_millis(100);
     tokio::pin!(drain);
@@ -761,8 +772,19 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
             _ = tokio::time::sleep(idle) => {}
         }
         let draining_now = draining.load(Ordering::Relaxed);
-        if draining_now && held.is_empty() && outbox.is_empty() {
+        if draining_now && held.is_empty() && outbox.is_empty() && awaiting.is_empty() {
             break;
+        }
+        // Answers are normally one poll behind; ones missing for long were lost (a
+        // coordinator that failed before committing them): send those reports again.
+        let now = std::time::Instant::now();
+        while awaiting
+            .front()
+            .is_some_and(|(at, _)| now.duration_since(*at) > UNANSWERED_RESEND)
+        {
+            let (_, r) = awaiting.pop_front().expect("checked");
+            tracing::warn!(lease = ?r.lease, "report not acknowledged; resending");
+            outbox.insert(0, r);
         }
         collect_partial(&signals, &held, &mut outbox);
         let req = v1::PollRequest {
@@ -799,28 +821,22 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 })
                 .collect(),
         };
-        // The reply answers the reports this poll carried: the first `sent` of the outbox.
+        // The first `sent` of the outbox go with this poll and wait for their answers.
         let sent = req.reports.len();
+        awaiting.extend(outbox.drain(..sent).map(|r| (now, r)));
         match client.poll(req).await {
             Ok(reply) => {
                 backoff = Duration::from_millis(100);
                 let reply = reply.into_inner();
-                let answered: HashSet<(u64, u32, u32, u32)> = reply
-                    .acknowledged
-                    .iter()
-                    .chain(&reply.stale)
-                    .map(|t| (t.job, t.run, t.tile, t.attempt))
-                    .collect();
-                // Everything sent was answered (the reply covers the whole request).
-                let before = outbox.len();
-                let mut k = 0;
-                outbox.retain(|r| {
-                    k += 1;
-                    let l = r.lease.as_ref().expect("own reports carry their lease");
-                    k > sent || !answered.contains(&(l.job, l.run, l.tile, l.attempt))
-                });
-                if outbox.len() == before && sent > 0 {
-                    tracing::warn!(unanswered = sent, "reports not acknowledged; resending");
+                for answered in reply.acknowledged.iter().chain(&reply.stale) {
+                    let key = lease_key(answered);
+                    match awaiting
+                        .iter()
+                        .position(|(_, r)| r.lease.as_ref().map(lease_key) == Some(key))
+                    {
+                        Some(k) => drop(awaiting.remove(k)),
+                        None => tracing::debug!(lease = %answered, "answer to no report waiting"),
+                    }
                 }
                 {
                     let mut s = signals.lock().expect("signals");
@@ -910,6 +926,10 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 // and the leases; the next poll resends and re-adopts them.
                 tracing::warn!(error = %e.message(), "coordinator does not know this worker");
                 let again = register(&mut client, &opts).await?;
+                // What it had not committed is gone with it: everything unanswered goes again.
+                for (_, r) in awaiting.drain(..).rev() {
+                    outbox.insert(0, r);
+                }
                 // The marks counted the old process's relays.
                 for r in signals.lock().expect("signals").ledgers.values_mut() {
                     r.relayed = 0;
@@ -935,7 +955,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 // The coordinator refuses what this poll carried (it changed nothing): drop
                 // those reports rather than resend them forever; their tiles are leased again.
                 tracing::error!(error = %e.message(), dropped_reports = sent, "the coordinator refused reports; dropping them");
-                outbox.drain(..sent.min(outbox.len()));
+                awaiting.truncate(awaiting.len().saturating_sub(sent));
             }
             Err(e)
                 if matches!(
@@ -946,6 +966,13 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 return Err(format!("the coordinator refused a poll: {}", e.message()));
             }
             Err(e) => {
+                // Perhaps applied, perhaps not: this poll's reports go again (a repeat
+                // changes nothing); their answers, if owed, come all the same.
+                for _ in 0..sent {
+                    if let Some((_, r)) = awaiting.pop_back() {
+                        outbox.insert(0, r);
+                    }
+                }
                 tracing::warn!(error = %e.message(), retry_in_ms = backoff.as_millis() as u64, pending_reports = outbox.len(), "poll failed");
                 tokio::time::sleep(backoff).await;
                 backoff = (backoff * 2).min(Duration::from_secs(5));
