@@ -1,8 +1,9 @@
 //! The coordinator: the gRPC services for workers and clients (tonic), and one event loop on
 //! its own thread that owns the [`scheduler::Scheduler`] — jobs, runs, ledgers, tile leases —
-//! and its SQLite store. Handlers only turn requests into [`Event`]s and wait for the loop's
-//! answer, so every state change happens in one place, in arrival order, and is committed to
-//! the store before the answer goes out. It never integrates an orbit.
+//! whose SQLite store commits on a thread of its own. Handlers only turn requests into
+//! [`Event`]s and wait for the loop's answer, so every state change happens in one place, in
+//! arrival order, and nothing is acknowledged before it is committed (a poll's reply goes out
+//! at once, carrying only acknowledgements already durable). It never integrates an orbit.
 
 pub mod scheduler;
 mod writer;

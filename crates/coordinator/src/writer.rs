@@ -1,11 +1,14 @@
 //! The store on a thread of its own, so that the scheduler's loop never waits for an fsync.
 //!
-//! With `synchronous=FULL` every commit waits for the disk, and while the loop thread waited
-//! inside its group commit, the polls that arrived queued behind it: on a 2-core VM the
-//! fsyncs cost 2 workers × 1 thread 0.8–1.0 s of a 5.2–5.5 s run (4.3–4.7 s with the store on
-//! tmpfs). Now the loop hands a group's writes and its held answers to this thread and goes
-//! on with the next events; the thread commits the group and only then lets the answers go,
-//! so nothing is acknowledged before it is durable.
+//! With `synchronous=FULL` every commit waits for the disk. While the loop thread waited inside
+//! its group commit, the polls that arrived queued behind it, and the workers' lanes ran dry
+//! waiting for leases (on a 2-core VM, 2 workers × 1 thread took 5.2–5.6 s with the store on
+//! disk and 4.3–4.9 s on tmpfs). Now the loop hands a group's writes and held answers to this
+//! thread and goes on with the next events; the thread commits the group and only then lets
+//! the answers go, so nothing is acknowledged before it is durable. That alone bought nothing
+//! measurable, because each poll's reply still waited for its fsync. Polls are therefore
+//! answered at once, with their acknowledgements owed until their group is durable (see
+//! [`StoreThread::durable_group`] and `Scheduler::poll`).
 //!
 //! Outside a group (tests, tools) every write is committed before the call returns, as a
 //! plain [`Store`] would. Reads and job inserts wait for the writes queued before them, so
