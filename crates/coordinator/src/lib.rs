@@ -22,6 +22,7 @@ use tokio::sync::{mpsc, oneshot};
 use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
 use tonic::transport::{Identity, Server, ServerTlsConfig};
 use tonic::{Request, Response, Status};
+use writer::Deferred;
 
 type Reply<T> = oneshot::Sender<Result<T, Status>>;
 
@@ -61,8 +62,6 @@ const RESULTS_BATCH: usize = 256;
 const GROUP: usize = 64;
 
 type Watchers = Vec<(u64, mpsc::Sender<Result<v1::JobStatus, Status>>)>;
-
-use writer::Deferred;
 
 fn defer<T: Send + 'static>(tx: Reply<T>, r: Result<T, Status>) -> Deferred {
     Box::new(move || drop(tx.send(r)))

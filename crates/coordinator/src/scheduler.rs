@@ -752,9 +752,6 @@ impl Scheduler {
                         w.leases.insert(key);
                     }
                 }
-                // Ended here (its finishing report applied) while the worker still names
-                // it: nothing to renew, and its reports still count.
-                None if h.attempt == tile.valid => {}
                 _ => revoked.push(*h),
             }
         }
