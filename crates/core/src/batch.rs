@@ -20,6 +20,9 @@ use crate::real::{dot, lane_bits, Lanes, Real};
 use crate::section::{locate_upward_lanes, Crossing, CrossingStep};
 use crate::tangent::{EdgeIncrement, Phase, TangentMap};
 
+// `LaneState::energy_phase` has a bit per phase of the energy checks.
+const _: () = assert!(ENERGY_CHECK_EVERY <= 64);
+
 /// A copy of `a` made one vector at a time (see its use in [`feed_loop`]).
 #[inline(always)]
 fn vector_copy<const N: usize, const L: usize>(a: &[Lanes<L>; N]) -> [Lanes<L>; N] {
@@ -215,10 +218,21 @@ struct LaneState<'h, H, const N: usize, const K: usize, const L: usize> {
     /// the tracker's check (a spurious flag costs one scalar pass that does nothing).
     drift_screen: Lanes<L>,
     active: [bool; L],
-    /// Steps done by each lane's orbit.
-    n: [u64; L],
+    /// Steps taken by the driver, all lanes together.
+    step: u64,
+    /// `step` when each lane's orbit came in: the orbit has taken `step - start[l]` steps.
+    start: [u64; L],
     /// The step of each lane's next time-series sample (`u64::MAX`: none).
     sample_at: [u64; L],
+    /// A driver step at or before the first one at which some lane's orbit takes its last
+    /// step or a sample ([`LaneState::lane_due`]).
+    due: u64,
+    /// Bit k: some lane's orbit is due for its energy check (every [`ENERGY_CHECK_EVERY`] of
+    /// its steps) at the driver steps ≡ k modulo that period.
+    energy_phase: u64,
+    /// The orbits' last step, and whether the tracker is due at every step.
+    n_final: u64,
+    every_step: bool,
     /// The feed said Done.
     exhausted: bool,
 }
@@ -226,7 +240,7 @@ struct LaneState<'h, H, const N: usize, const K: usize, const L: usize> {
 impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
     LaneState<'h, H, N, K, L>
 {
-    fn new(map: &TangentMap<'h, H>) -> Self {
+    fn new(map: &TangentMap<'h, H>, n_final: u64, every_step: bool) -> Self {
         let x = Phase::zero();
         LaneState {
             inc: map.edge_increment(&x),
@@ -235,10 +249,56 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             h0: Lanes([0.0; L]),
             drift_screen: Lanes([0.0; L]),
             active: [false; L],
-            n: [0; L],
+            step: 0,
+            start: [0; L],
             sample_at: [u64::MAX; L],
+            due: 0,
+            energy_phase: 0,
+            n_final,
+            every_step,
             exhausted: false,
         }
+    }
+
+    /// Steps taken by lane `l`'s orbit.
+    fn n(&self, l: usize) -> u64 {
+        self.step - self.start[l]
+    }
+
+    /// The first driver step after this one at which lane `l`'s orbit takes its last step or
+    /// a sample (every step when the tracker is due at every step), as [`screen`] tests them.
+    fn lane_due(&self, l: usize) -> u64 {
+        if !self.active[l] {
+            return u64::MAX;
+        }
+        if self.every_step {
+            return self.step + 1;
+        }
+        let n_next = self.n(l) + 1;
+        let mut n_due = self.n_final.max(n_next);
+        if self.sample_at[l] >= n_next {
+            n_due = n_due.min(self.sample_at[l]);
+        }
+        self.start[l] + n_due
+    }
+
+    /// Lane `l`'s orbit came in or its next sample moved: keeps `due` at or before its turn,
+    /// and the energy checks' phases up to date.
+    fn lane_changed(&mut self, l: usize) {
+        self.due = self.due.min(self.lane_due(l));
+        self.energy_phase = (0..L).filter(|&l| self.active[l]).fold(0, |bits, l| {
+            bits | 1 << (self.start[l] % ENERGY_CHECK_EVERY)
+        });
+    }
+
+    /// Whether some lane's per-orbit tests may be due at this step: its energy check, its
+    /// last step or a sample.
+    fn due_now(&mut self) -> bool {
+        let rare = self.step >= self.due;
+        if rare {
+            self.due = (0..L).map(|l| self.lane_due(l)).min().unwrap_or(u64::MAX);
+        }
+        rare | (self.energy_phase >> (self.step % ENERGY_CHECK_EVERY) & 1 != 0)
     }
 
     /// Puts the feed's next orbit (if any) into lane `l`, whose orbit has left; an empty lane
@@ -287,11 +347,12 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         };
         set_lane(&mut self.x, &mut self.inc, l, &sx, &map.edge_increment(&sx));
         self.active[l] = job.is_some();
-        self.n[l] = 0;
+        self.start[l] = self.step;
         self.sample_at[l] = job
             .as_ref()
             .map_or(u64::MAX, |j| j.tracker.next_sample_step());
         self.jobs[l] = job;
+        self.lane_changed(l);
     }
 }
 
@@ -429,7 +490,7 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
         requests,
         initial: initial_vectors::<N, K>(config.deviation),
     };
-    let mut st = LaneState::<H, N, K, L>::new(map);
+    let mut st = LaneState::<H, N, K, L>::new(map, n_final, requests.energy);
     for l in 0..L {
         st.fill(l, false, &setup, feed);
     }
@@ -443,7 +504,6 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
         every_step: requests.energy,
     };
     let feed_locates = feed.locates_crossings();
-    let mut step = 0u64;
     let poll = poll_interval(map.tau());
     // Crossings found but not yet located: located together, one per lane, when L have queued
     // up or before an orbit with one queued leaves its lane. Each lane's entries are in time
@@ -463,7 +523,8 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
             }
             continue;
         }
-        step += 1;
+        st.step += 1;
+        let step = st.step;
         // One vector at a time: copied as whole arrays, LLVM moves two 4-lane vectors in one
         // 512-bit register in the AVX-512 copy, and on Intel cores a 512-bit instruction in
         // every step shuts the second vector port (4 lanes: 11.6 against 6.6 ns per
@@ -499,7 +560,7 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
                         queued.flush(map, &mut st.jobs, feed);
                     }
                     if let Some(j) = st.jobs[l].take() {
-                        feed.abandoned(j.id, st.n[l]);
+                        feed.abandoned(j.id, st.n(l));
                     }
                     st.fill(l, false, &setup, feed);
                     flagged &= !(1 << l);
@@ -518,10 +579,10 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
             if only_aligned & bit != 0 && !lane_sali_below(&st.x, l, chaotic) {
                 continue;
             }
+            let n = st.n(l);
             let job = st.jobs[l].as_mut().expect("flagged lanes are active");
             let qp: [f64; N] = core::array::from_fn(|i| q_prev[i].0[l]);
             let pp: [f64; N] = core::array::from_fn(|i| p_prev[i].0[l]);
-            let n = st.n[l];
             if only_crossed & bit != 0 {
                 // Nothing else is due, so the tracker's pass would only flag the crossing: at
                 // τ = 0.5 that pass on every crossing was half the stepping thread's time.
@@ -573,6 +634,7 @@ fn feed_loop<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
             } else {
                 let job = st.jobs[l].as_ref().expect("active");
                 st.sample_at[l] = job.tracker.next_sample_step();
+                st.lane_changed(l);
                 set_lane(&mut st.x, &mut st.inc, l, &sx, &sinc);
             }
         }
@@ -628,15 +690,20 @@ fn screen<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
         n2[k] = dot(&x.dq[k], &x.dq[k]) + dot(&x.dp[k], &x.dp[k]);
     }
     let c = dot(&x.dq[0], &x.dq[1]) + dot(&x.dp[0], &x.dp[1]);
-    for n in &mut st.n {
-        *n += 1;
-    }
-    let (n, sample_at) = (&st.n, &st.sample_at);
-    let energy_at = |l: usize| n[l].is_multiple_of(ENERGY_CHECK_EVERY) | (n[l] >= rules.n_final);
-    let hard_at = |l: usize| rules.every_step | (n[l] >= rules.n_final) | (n[l] == sample_at[l]);
+    // The per-lane step counts are tested only at the steps `due_now` announces (a quarter of
+    // the steps with 4 lanes), not at every step.
+    let due_now = st.due_now();
+    let (start, sample_at, step) = (&st.start, &st.sample_at, st.step);
+    let n = |l: usize| step - start[l];
+    let energy_at = |l: usize| n(l).is_multiple_of(ENERGY_CHECK_EVERY) | (n(l) >= rules.n_final);
+    let hard_at = |l: usize| rules.every_step | (n(l) >= rules.n_final) | (n(l) == sample_at[l]);
     if L == 4 {
-        let hard = lane_bits::<L>(hard_at);
-        let energy_due = lane_bits::<L>(energy_at) | hard;
+        let (hard, energy_due) = if due_now {
+            let hard = lane_bits::<L>(hard_at);
+            (hard, lane_bits::<L>(energy_at) | hard)
+        } else {
+            (0, 0)
+        };
         // The `not_*` compares are true for NaN too, which is the point.
         let mut f = hard | r2.not_le_bits(Lanes::splat(rules.r2_max));
         for n2k in &n2 {
@@ -664,7 +731,14 @@ fn screen<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
             only_crossed: !f & !aligned,
         };
     }
-    let energy_due: [bool; L] = core::array::from_fn(|l| rules.every_step | energy_at(l));
+    let (hard, energy_due): ([bool; L], [bool; L]) = if due_now {
+        (
+            core::array::from_fn(hard_at),
+            core::array::from_fn(|l| rules.every_step | energy_at(l)),
+        )
+    } else {
+        ([false; L], [false; L])
+    };
     let dh = if energy_due.iter().any(|&d| d) {
         ham.energy(&x.q, &x.p) - st.h0
     } else {
@@ -677,7 +751,7 @@ fn screen<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
     #[allow(clippy::neg_cmp_op_on_partial_ord)]
     for l in 0..L {
         let mut f = energy_due[l] & !(dh.0[l].abs() <= st.drift_screen.0[l]);
-        f |= hard_at(l);
+        f |= hard[l];
         f |= !(r2.0[l] <= rules.r2_max);
         for n2k in &n2 {
             f |= !in_band(n2k.0[l]);
