@@ -58,6 +58,9 @@ pub fn may_be_aligned(a: f64, b: f64, c: f64, theta: f64) -> bool {
     c * c >= a * b * alignment_factor(theta)
 }
 
+/// The smallest threshold [`may_be_below`] resolves: below it, it passes everything.
+pub const MINORS_RESOLVE: f64 = 1e-13;
+
 /// Whether SALI of `w1` and `w2` may be below `theta`; `false` proves it is not. Where
 /// [`may_be_aligned`] passes everything within ~3e-7 of alignment (cos² is 1 to f64's
 /// precision there), this resolves angles down to ~1e-15: the sine of the angle between the
@@ -72,7 +75,7 @@ pub fn may_be_below<const N: usize>(
     w2: (&[f64; N], &[f64; N]),
     theta: f64,
 ) -> bool {
-    if theta < 1e-13 {
+    if theta < MINORS_RESOLVE {
         return true;
     }
     let z1 = |i: usize| if i < N { w1.0[i] } else { w1.1[i - N] };
