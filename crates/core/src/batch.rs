@@ -117,16 +117,6 @@ pub trait BatchFeed<const N: usize> {
     fn finished(&mut self, id: usize, result: OrbitResult<N>);
     /// Called for every upward crossing of orbit `id` when it is located.
     fn on_crossing(&mut self, _id: usize, _crossing: &Crossing<N>) {}
-    /// True when the feed locates crossings itself: the driver then hands it each crossing
-    /// step through [`BatchFeed::crossing_step`] and neither locates nor records it (the
-    /// results carry no crossings). Locating is as costly as stepping at large τ, so a caller
-    /// with a spare core locates there, with [`locate_upward_lanes`], the same bits.
-    fn locates_crossings(&self) -> bool {
-        false
-    }
-    /// Orbit `id` crossed the section upwards in `step` (only when
-    /// [`BatchFeed::locates_crossings`]).
-    fn crossing_step(&mut self, _id: usize, _step: CrossingStep<N>) {}
     /// Polled every [`poll_interval`] steps: true abandons orbit `id` (no result is reported).
     fn cancelled(&mut self, _id: usize) -> bool {
         false
@@ -522,7 +512,6 @@ fn feed_loop<
         minors: (config.thresholds.early_stop && chaotic >= MINORS_RESOLVE)
             .then_some(4.0 * chaotic * chaotic),
     };
-    let feed_locates = feed.locates_crossings();
     let poll = poll_interval(map.tau());
     // Crossings found but not yet located: located together, one per lane, when L have queued
     // up or before an orbit with one queued leaves its lane. Each lane's entries are in time
@@ -631,9 +620,7 @@ fn feed_loop<
                     t: (n - 1) as f64 * map.tau(),
                     q1_end: st.x.q[0].0[l],
                 };
-                if feed_locates {
-                    feed.crossing_step(job.id, step);
-                } else if queued.push(l, step) {
+                if queued.push(l, step) {
                     queued.flush(map, &mut st.jobs, feed);
                 }
                 continue;
@@ -658,9 +645,7 @@ fn feed_loop<
                     t: (n - 1) as f64 * map.tau(),
                     q1_end,
                 };
-                if feed_locates {
-                    feed.crossing_step(job.id, step);
-                } else if queued.push(l, step) {
+                if queued.push(l, step) {
                     queued.flush(map, &mut st.jobs, feed);
                 }
             }

@@ -15,10 +15,10 @@ use salient_core::orbit::{
 };
 use salient_core::run::{adaptive_orbits_per_thread, integrate_feed_adaptive, MethodRun};
 use salient_core::section::on_section;
-use salient_core::section::{locate_upward_lanes, Crossing, CrossingStep};
+use salient_core::section::Crossing;
 use salient_core::{HenonHeiles, TangentMap};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Condvar, Mutex};
+use std::sync::Mutex;
 
 /// Orbits advanced together in one batched stepper on the pinned target level, and the unit
 /// in which schedulers size their batches (see [`lanes`] for what runs).
@@ -674,14 +674,6 @@ impl Drop for FailOnPanic<'_> {
 /// with none; with f64 Taylor's (a good one) 2.1–2.3 s either way.
 const FORECAST_PATIENCE: usize = 256;
 
-/// Whether [`Engine::take_needed`] waits for the ledger's lock or gives up when it is taken.
-enum Lock {
-    Wait,
-    /// For a lane of a stepping thread whose other lanes have work: its commits take the lock
-    /// for microseconds, and waiting would hold every lane.
-    Try,
-}
-
 /// What a lane asking for work gets from [`Engine::take_needed`].
 enum Needed {
     Cell(u32),
@@ -696,7 +688,7 @@ impl<P: FnMut(&Ledger)> Engine<'_, P> {
     /// millisecond at 400×400), and idle lanes ask at every poll (without this, 8-lane
     /// drivers spent 44 % of a τ = 0.01 run searching), so it is repeated only after an
     /// orbit stops.
-    fn take_needed(&self, dry_since: &mut Option<u64>, lock: Lock) -> Needed {
+    fn take_needed(&self, dry_since: &mut Option<u64>) -> Needed {
         if self.failed.load(Ordering::Relaxed) {
             return Needed::Done;
         }
@@ -704,14 +696,7 @@ impl<P: FnMut(&Ledger)> Engine<'_, P> {
         if *dry_since == Some(stopped) {
             return Needed::NotNow;
         }
-        let g = match lock {
-            Lock::Wait => self.shared.lock().expect("ledger lock"),
-            Lock::Try => match self.shared.try_lock() {
-                Ok(g) => g,
-                Err(std::sync::TryLockError::WouldBlock) => return Needed::NotNow,
-                Err(std::sync::TryLockError::Poisoned(_)) => panic!("ledger lock poisoned"),
-            },
-        };
+        let g = self.shared.lock().expect("ledger lock");
         let ledger = &g.ledger;
         if ledger.done() {
             return Needed::Done;
@@ -877,7 +862,7 @@ struct LedgerFeed<'a, P> {
 
 impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
     fn next(&mut self, all_idle: bool) -> Feed<2> {
-        let needed = self.engine.take_needed(&mut self.dry_since, Lock::Wait);
+        let needed = self.engine.take_needed(&mut self.dry_since);
         self.engine.feed(needed, all_idle)
     }
     fn finished(&mut self, cell: usize, r: OrbitResult<2>) {
@@ -899,320 +884,17 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
     }
 }
 
-/// What a stepping thread tells its locating thread, in the order it happened.
-enum Event {
-    Crossing {
-        cell: u32,
-        step: CrossingStep<2>,
-    },
-    Finished {
-        cell: u32,
-        /// Boxed: crossings, by far the most frequent events, would otherwise be moved at the
-        /// size of a whole result.
-        result: Box<OrbitResult<2>>,
-    },
-    Abandoned {
-        cell: u32,
-        steps: u64,
-    },
-    /// The stepping thread has stopped.
-    Done,
-}
-
-impl Event {
-    /// The cell whose orbit this event ends.
-    fn ended(&self) -> Option<u32> {
-        match self {
-            Event::Finished { cell, .. } | Event::Abandoned { cell, .. } => Some(*cell),
-            _ => None,
-        }
-    }
-}
-
-/// The hand-off from a stepping thread to its locating thread. Both sides swap whole vectors,
-/// so once their capacities have grown nothing is allocated. The locating thread spins
-/// briefly before it sleeps: the stepping thread waits for it whenever a lane needs a new
-/// cell, and waking a sleeping thread takes longer than handling what it was sent.
-#[derive(Default)]
-struct Pipe {
-    inbox: Mutex<Inbox>,
-    ready: Condvar,
-    /// Events sent so far.
-    sent: Padded<AtomicU64>,
-    /// The locating thread panicked: the stepping thread must not wait for it.
-    broken: AtomicBool,
-    /// Events handled so far: every orbit that ended up to there has its crossings booked as
-    /// claims and is in the ledger or about to be (its cell stays running until it is);
-    /// crossings of orbits still running may still wait to be located.
-    handled: Padded<AtomicU64>,
-}
-
-#[derive(Default)]
-struct Inbox {
-    events: Vec<Event>,
-    /// The locating thread waits on [`Pipe::ready`]: only then is it notified (a notification
-    /// is a system call, and a send every poll made that a sixth of the stepping thread's
-    /// time).
-    sleeping: bool,
-}
-
-/// A value on a cache line of its own, so that one thread's writes do not evict what
-/// another thread reads.
-#[derive(Default)]
-#[repr(align(128))]
-struct Padded<T>(T);
-
-impl<T> std::ops::Deref for Padded<T> {
-    type Target = T;
-    fn deref(&self) -> &T {
-        &self.0
-    }
-}
-
-/// Spins of the locating thread before it sleeps (a few tens of microseconds).
-const PIPE_SPINS: u32 = 1 << 14;
-
-impl Pipe {
-    fn send(&self, out: &mut Vec<Event>) {
-        if out.is_empty() {
-            return;
-        }
-        let n = out.len() as u64;
-        let mut inbox = self.inbox.lock().expect("pipe");
-        inbox.events.append(out);
-        self.sent.fetch_add(n, Ordering::Release);
-        if inbox.sleeping {
-            drop(inbox);
-            self.ready.notify_one();
-        }
-    }
-
-    /// Waits for events and moves them into the empty `into`; `seen` counts the events
-    /// received before.
-    fn receive(&self, into: &mut Vec<Event>, seen: u64) {
-        for _ in 0..PIPE_SPINS {
-            if self.sent.load(Ordering::Acquire) != seen {
-                break;
-            }
-            std::hint::spin_loop();
-        }
-        let mut inbox = self.inbox.lock().expect("pipe");
-        while inbox.events.is_empty() {
-            inbox.sleeping = true;
-            inbox = self.ready.wait(inbox).expect("pipe");
-            inbox.sleeping = false;
-        }
-        std::mem::swap(&mut inbox.events, into);
-    }
-
-    /// Waits until everything sent has been handled, so the ledger and the claims know what
-    /// the stepping side knows.
-    fn drain(&self) {
-        let sent = self.sent.load(Ordering::Relaxed);
-        while self.handled.load(Ordering::Acquire) < sent {
-            assert!(
-                !self.broken.load(Ordering::Relaxed),
-                "the locating thread panicked"
-            );
-            std::hint::spin_loop();
-        }
-    }
-}
-
-/// The stepping half of a pipelined pair: the batched driver's feed, which passes crossing
-/// steps and ended orbits on to the locating half instead of handling them. Events go out at
-/// every poll and whenever a lane asks for work, so claims lag the orbits by at most one poll
-/// interval.
-struct StepperFeed<'a, P> {
-    engine: &'a Engine<'a, P>,
-    pipe: &'a Pipe,
-    out: Vec<Event>,
-    dry_since: Option<u64>,
-    /// Events sent or to be sent up to the last orbit that ended.
-    ended: u64,
-}
-
-impl<P: FnMut(&Ledger)> BatchFeed<2> for StepperFeed<'_, P> {
-    fn next(&mut self, all_idle: bool) -> Feed<2> {
-        self.pipe.send(&mut self.out);
-        // A cell chosen before the ledger has the orbits that just ended (and the claims their
-        // crossings make) is often one they label: the lane waits for the next poll instead,
-        // unless no lane has work.
-        let seen = self.pipe.handled.load(Ordering::Acquire);
-        if seen < self.ended {
-            if !all_idle {
-                return Feed::Wait;
-            }
-            self.pipe.drain();
-        }
-        let lock = if all_idle { Lock::Wait } else { Lock::Try };
-        let needed = self.engine.take_needed(&mut self.dry_since, lock);
-        self.engine.feed(needed, all_idle)
-    }
-    fn finished(&mut self, cell: usize, result: OrbitResult<2>) {
-        let cell = cell as u32;
-        self.out.push(Event::Finished {
-            cell,
-            result: Box::new(result),
-        });
-        self.note_end();
-    }
-    fn locates_crossings(&self) -> bool {
-        true
-    }
-    fn crossing_step(&mut self, cell: usize, step: CrossingStep<2>) {
-        let cell = cell as u32;
-        self.out.push(Event::Crossing { cell, step });
-    }
-    fn cancelled(&mut self, cell: usize) -> bool {
-        self.pipe.send(&mut self.out);
-        self.engine.cancelled(cell as u32)
-    }
-    fn abandoned(&mut self, cell: usize, steps: u64) {
-        let cell = cell as u32;
-        self.out.push(Event::Abandoned { cell, steps });
-        self.note_end();
-    }
-}
-
-impl<P> StepperFeed<'_, P> {
-    /// An orbit has just ended: its event is the last in `out`.
-    fn note_end(&mut self) {
-        self.ended = self.pipe.sent.load(Ordering::Relaxed) + self.out.len() as u64;
-    }
-}
-
-impl<P> Drop for StepperFeed<'_, P> {
-    /// The locating half waits for `Done`, also when the stepping half unwinds.
-    fn drop(&mut self) {
-        self.out.push(Event::Done);
-        self.pipe.send(&mut self.out);
-    }
-}
-
-/// The locating half of a pipelined pair: locates the crossings its stepping half found,
-/// [`LANES`] at a time in SIMD lanes (bit for bit the batched driver's own locating), turns
-/// them into claims and hands ended orbits to the ledger, until the stepping half is done.
-fn locate_events<P: FnMut(&Ledger)>(
-    engine: &Engine<'_, P>,
-    map: &TangentMap<'_, HenonHeiles>,
-    pipe: &Pipe,
-) {
-    /// Marks the pipe broken if the locating thread unwinds.
-    struct Guard<'a>(&'a Pipe);
-    impl Drop for Guard<'_> {
-        fn drop(&mut self) {
-            if std::thread::panicking() {
-                self.0.broken.store(true, Ordering::Relaxed);
-            }
-        }
-    }
-    let _guard = Guard(pipe);
-    let mut book = CrossingBook::default();
-    let mut events = Vec::new();
-    let mut queue = LocateQueue {
-        owners: [0; LANES],
-        steps: [CrossingStep::ZERO; LANES],
-        len: 0,
-    };
-    // Locates the queued crossings and books them as claims.
-    let locate = |book: &mut CrossingBook, queue: &mut LocateQueue| {
-        let n = std::mem::take(&mut queue.len);
-        if n == 0 {
-            return;
-        }
-        let found = locate_upward_lanes::<_, 2, LANES>(map, &queue.steps[..n]);
-        for (&from, c) in queue.owners[..n].iter().zip(&found) {
-            if let Some(to) = engine.grid.cell_of(c.q[1], c.p[1]) {
-                book.crossed(engine.grid, engine.claims, from, to);
-            }
-        }
-    };
-    let mut received = 0;
-    // Crossings of orbits still running, left for after the ends that came with them.
-    let mut deferred = Vec::new();
-    let mut ending = Vec::new();
-    loop {
-        pipe.receive(&mut events, received);
-        let first = received;
-        received += events.len() as u64;
-        // Ended orbits first, each with its own crossings (all booked before its end): the
-        // stepping thread holds a lane idle until its ended orbits are in the ledger, while
-        // other orbits' crossings only refine the claims. In arrival order a lane waited
-        // ~13 µs per ended orbit, the time to locate the crossings sent before the end.
-        ending.clear();
-        ending.extend(events.iter().filter_map(Event::ended));
-        let mut done = false;
-        // Ends are handled in order, so when one is, every end before it is.
-        for (k, event) in events.drain(..).enumerate() {
-            match event {
-                Event::Crossing { cell, .. } if !ending.contains(&cell) => deferred.push(event),
-                Event::Crossing { cell, step } => {
-                    if queue.push(cell, step) {
-                        locate(&mut book, &mut queue);
-                    }
-                }
-                Event::Finished { cell, result } => {
-                    locate(&mut book, &mut queue);
-                    let visited = book.take(cell);
-                    // Its crossings are claims now and its cell stays running until the
-                    // commit, so the stepping thread need not wait for the commit (~6 µs):
-                    // until then the cells this orbit labels look crossed by a running orbit,
-                    // which the choice of cells avoids just the same.
-                    pipe.handled.store(first + k as u64 + 1, Ordering::Release);
-                    engine.commit(cell, &result, visited);
-                }
-                Event::Abandoned { cell, steps } => {
-                    locate(&mut book, &mut queue);
-                    book.take(cell);
-                    engine.abandoned(cell, steps);
-                    pipe.handled.store(first + k as u64 + 1, Ordering::Release);
-                }
-                Event::Done => done = true,
-            }
-        }
-        for event in deferred.drain(..) {
-            if let Event::Crossing { cell, step } = event {
-                if queue.push(cell, step) {
-                    locate(&mut book, &mut queue);
-                }
-            }
-        }
-        // Claims should not wait for the next batch of events.
-        locate(&mut book, &mut queue);
-        pipe.handled.store(received, Ordering::Release);
-        if done {
-            return;
-        }
-    }
-}
-
-/// Crossings waiting to be located together, one per SIMD lane.
-struct LocateQueue {
-    owners: [u32; LANES],
-    steps: [CrossingStep<2>; LANES],
-    len: usize,
-}
-
-impl LocateQueue {
-    /// Queues the crossing of `owner`'s orbit in `step`; true when the queue is full.
-    fn push(&mut self, owner: u32, step: CrossingStep<2>) -> bool {
-        self.owners[self.len] = owner;
-        self.steps[self.len] = step;
-        self.len += 1;
-        self.len == LANES
-    }
-}
-
 /// Runs a whole grid in this process on the current rayon pool and returns the finished
 /// ledger. Fast PSS streams: batched steppers (tangent-map methods; adaptive ones run one
 /// scalar orbit per thread through the same feed) whose free lanes take the next cell the
 /// ledger needs (skipping cells in flight or certain to be labelled) and offer each outcome
 /// the moment its orbit ends; orbits whose cell the frontier orbit crosses are abandoned.
-/// Speculation is bounded by the lanes in flight. At large τ, where locating tangent-map
-/// crossings costs as much as stepping, threads work in pairs (see [`pipelined`]): one steps,
-/// the other locates and keeps the books, so half the lanes are in flight for the same cores.
-/// Full mode, and fast PSS with checkpoints, go in rounds of `window` cells. Either way the
+/// Speculation is bounded by the lanes in flight. Each thread steps its lanes and locates
+/// and books their crossings itself. (At τ ≥ 0.35 threads worked in pairs, one stepping and
+/// one locating, until 2026-11-27; once a cell crossed by any running orbit was held back,
+/// one driver per thread dropped little more than pairs and was faster: 400×400, t = 1e4,
+/// 2 threads, alternated, τ = 0.35 0.32 against 0.36 s, τ = 0.5 0.30 against 0.36 s, τ = 1
+/// 0.16 against 0.25 s.) Full mode, and fast PSS with checkpoints, go in rounds of `window` cells. Either way the
 /// labels are those of the sequential rule. (Adaptive fast PSS went in rounds of 8 cells per
 /// thread until 2026-11-24, when the streaming feed with claims and abandonment dropped 2–3 %
 /// of the steps instead of half: dop853 400×400 τ = 0.5 t = 1e4 4.8 → 2.4 s.)
@@ -1287,37 +969,14 @@ pub fn run_embedded_forecast(
     };
     let ham = HenonHeiles;
     let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
-    let threads = rayon::current_num_threads();
-    let pairs = if pipelined(cell_run.config.tau) {
-        threads / 2
-    } else {
-        0
-    };
-    let pipes: Vec<Pipe> = (0..pairs).map(|_| Pipe::default()).collect();
-    rayon::broadcast(|ctx| {
+    rayon::broadcast(|_| {
         let _guard = FailOnPanic(&engine.failed);
-        let i = ctx.index();
-        match pipes.get(i / 2) {
-            Some(pipe) if i % 2 == 0 => {
-                let mut feed = StepperFeed {
-                    engine: &engine,
-                    pipe,
-                    out: Vec::new(),
-                    dry_since: None,
-                    ended: 0,
-                };
-                drive(&map, &cell_run.config, &requests, mode, &mut feed);
-            }
-            Some(pipe) => locate_events(&engine, &map, pipe),
-            None => {
-                let mut feed = LedgerFeed {
-                    engine: &engine,
-                    book: CrossingBook::default(),
-                    dry_since: None,
-                };
-                drive(&map, &cell_run.config, &requests, mode, &mut feed);
-            }
-        }
+        let mut feed = LedgerFeed {
+            engine: &engine,
+            book: CrossingBook::default(),
+            dry_since: None,
+        };
+        drive(&map, &cell_run.config, &requests, mode, &mut feed);
     });
     finish(shared, &claims)
 }
@@ -1366,18 +1025,4 @@ fn drive_adaptive(
         guided,
         feed,
     );
-}
-
-/// From this step on, embedded fast PSS runs its threads in pairs of a stepping and a
-/// locating thread (see [`run_embedded`]).
-const PIPELINE_FROM_TAU: f64 = 0.35;
-
-/// Whether embedded fast PSS at step `tau` runs in stepping/locating pairs. At τ = 0.5 a
-/// crossing comes every dozen steps, locating it with its bookkeeping costs as much as the
-/// steps, and a second driver's lanes in flight triple the dropped work; at smaller τ the
-/// stepping thread alone is the bottleneck. 400×400, t = 1e4, 2 threads, pairs against one
-/// driver per thread (2026-11-24): τ = 0.2 0.46 vs 0.37 s, 0.3 0.32 vs 0.32 s, 0.4 0.25 vs
-/// 0.27 s, 0.5 0.23 vs 0.27 s. `SALIENT_PIPELINE=0` turns pairs off (for comparisons).
-fn pipelined(tau: f64) -> bool {
-    tau >= PIPELINE_FROM_TAU && std::env::var("SALIENT_PIPELINE").map_or(true, |v| v != "0")
 }
