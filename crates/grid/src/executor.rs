@@ -229,6 +229,12 @@ impl Claims {
     /// read-modify-write on a cache line the other threads read costs more than the rest of
     /// the bookkeeping.
     fn note_crossed(&self, grid: &Grid, from: u32, cell: u32) {
+        // A cell certain to be labelled is never started, so who crossed it does not matter;
+        // most crossings in the chaotic sea fall in such cells, and this byte per cell stays
+        // in cache where the slots do not.
+        if self.claimed[cell as usize].load(Ordering::Relaxed) {
+            return;
+        }
         let pos = self.position[from as usize];
         if pos >= self.position[cell as usize] {
             return;
