@@ -942,6 +942,9 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
             self.book.crossed(e.grid, e.claims, cell as u32, to);
         }
     }
+    fn keeps_crossings(&self) -> bool {
+        false
+    }
     fn cancelled(&mut self, cell: usize) -> bool {
         self.engine.cancelled(cell as u32)
     }
