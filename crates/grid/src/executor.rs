@@ -266,7 +266,7 @@ impl Claims {
     /// The cell of the earliest orbit before `cell` in canonical order that crossed it while
     /// running and still runs.
     ///
-    /// One slot per cell, the earliest crosser, was all this remembered until 2026-11-27: once
+    /// One slot per cell, the earliest crosser, was all this remembered until 2026-11-26: once
     /// that orbit was abandoned, a running later one that had crossed the cell too was
     /// forgotten, and the cell's orbit was started and abandoned when the other crossed it again
     /// (400×400, τ = 0.01, t = 1e4: 309 orbits, 1.3e8 of the run's 1.2e9 steps).
@@ -961,7 +961,7 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
 /// the moment its orbit ends; orbits whose cell the frontier orbit crosses are abandoned.
 /// Speculation is bounded by the lanes in flight. Each thread steps its lanes and locates
 /// and books their crossings itself. (At τ ≥ 0.35 threads worked in pairs, one stepping and
-/// one locating, until 2026-11-27; once a cell crossed by any running orbit was held back,
+/// one locating, until 2026-11-26; once a cell crossed by any running orbit was held back,
 /// one driver per thread dropped little more than pairs and was faster: 400×400, t = 1e4,
 /// 2 threads, alternated, τ = 0.35 0.32 against 0.36 s, τ = 0.5 0.30 against 0.36 s, τ = 1
 /// 0.16 against 0.25 s.) Full mode, and fast PSS with checkpoints, go in rounds of `window` cells. Either way the
