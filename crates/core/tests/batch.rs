@@ -205,42 +205,55 @@ fn batched_lanes_stop_on_energy_drift_at_the_scalar_step() {
     }
 }
 
+/// The steps of the orbits from `ics` (the first `orbits` of them) that cross the section
+/// upwards within `steps` steps of `map`.
+fn crossing_steps(
+    map: &TangentMap<'_, HenonHeiles>,
+    orbits: usize,
+    steps: u64,
+) -> Vec<salient_core::section::CrossingStep<2>> {
+    use salient_core::section::CrossingStep;
+    use salient_core::tangent::{Phase, Stepping};
+    let mut starts = Vec::new();
+    for &(q, p) in ics().iter().take(orbits) {
+        let x = Phase::<f64, 2, 0> {
+            q,
+            p,
+            dq: [],
+            dp: [],
+        };
+        let mut s = Stepping::new(map, x);
+        for n in 0..steps {
+            let (q0, p0) = (s.x.q, s.x.p);
+            s.advance();
+            if q0[0] < 0.0 && s.x.q[0] >= 0.0 {
+                starts.push(CrossingStep {
+                    q: q0,
+                    p: p0,
+                    t: n as f64 * map.tau(),
+                    q1_end: s.x.q[0],
+                });
+            }
+        }
+    }
+    starts
+}
+
+fn crossing_bits(c: &salient_core::section::Crossing<2>) -> [u64; 5] {
+    [c.t, c.q[0], c.q[1], c.p[0], c.p[1]].map(f64::to_bits)
+}
+
 /// Crossings located together in lanes equal those located one by one, bit for bit, also with
 /// fewer crossings than lanes and with a lane whose scaled coefficients underflow (it takes the
 /// scalar path).
 #[test]
 fn crossings_located_in_lanes_equal_scalar_ones() {
     use salient_core::section::{locate_upward, locate_upward_lanes, CrossingStep};
-    use salient_core::tangent::{Phase, Stepping};
     let ham = HenonHeiles;
     for scheme in ["sbab2c", "saba2c", "sbab1", "srkn14a", "aba864"] {
         let tau = 0.3;
         let map = TangentMap::new(&ham, &Scheme::by_name(scheme).unwrap(), tau);
-        // Steps that cross the section upwards, from a few orbits.
-        let mut starts = Vec::new();
-        for &(q, p) in ics().iter().take(12) {
-            let mut s = Stepping::new(
-                &map,
-                Phase::<f64, 2, 0> {
-                    q,
-                    p,
-                    dq: [],
-                    dp: [],
-                },
-            );
-            for n in 0..400 {
-                let (q0, p0) = (s.x.q, s.x.p);
-                s.advance();
-                if q0[0] < 0.0 && s.x.q[0] >= 0.0 {
-                    starts.push(CrossingStep {
-                        q: q0,
-                        p: p0,
-                        t: n as f64 * tau,
-                        q1_end: s.x.q[0],
-                    });
-                }
-            }
-        }
+        let mut starts = crossing_steps(&map, 12, 400);
         // q1 a denormal below zero: h ≈ 1e-310, whose cube underflows to 0.
         let (q, p) = on_section(&ham, 0.125, &[0.1], &[0.05]).unwrap();
         let q1_end = tau * p[0];
@@ -260,12 +273,77 @@ fn crossings_located_in_lanes_equal_scalar_ones() {
             for (k, step) in chunk.iter().enumerate() {
                 let want = locate_upward(&map, step);
                 let have = lanes[k];
-                let bits = |c: &salient_core::section::Crossing<2>| {
-                    [c.t, c.q[0], c.q[1], c.p[0], c.p[1]].map(f64::to_bits)
-                };
-                assert_eq!(bits(&have), bits(&want), "{scheme}: {have:?} vs {want:?}");
+                assert_eq!(
+                    crossing_bits(&have),
+                    crossing_bits(&want),
+                    "{scheme}: {have:?} vs {want:?}"
+                );
             }
         }
+    }
+}
+
+/// The search that ends once a crossing's region is certain
+/// (`locate_upward_lanes_settling`): for every crossing it settles, the crossing the full
+/// search finds lies within the bound it handed over, in q2 and in p2, whatever the scheme's
+/// order and the step; most crossings settle at the first partial step (so the bound is not
+/// vacuous); and a lane the caller never accepts comes out as the full search's, bit for bit.
+#[test]
+fn settled_crossings_lie_within_their_bound() {
+    use salient_core::section::{locate_upward, locate_upward_lanes_settling, Crossing};
+    use std::cell::RefCell;
+    let ham = HenonHeiles;
+    // (scheme, τ, the share of crossings that must settle at once, a little below the share
+    // measured on 2026-11-26)
+    let cases = [
+        ("sbab2c", 0.5, 0.99),
+        ("sbab2c", 1.0, 0.9),
+        ("sbab2c", 0.01, 0.99),
+        ("saba1", 1.0, 0.6),
+        ("sbab1", 0.5, 0.75),
+        ("saba2c", 0.7, 0.99),
+        ("srkn14a", 0.5, 0.99),
+        ("aba864", 1.0, 0.99),
+    ];
+    for (scheme, tau, settled_share) in cases {
+        let map = TangentMap::new(&ham, &Scheme::by_name(scheme).unwrap(), tau);
+        let starts = crossing_steps(&map, 12, (800.0 / tau) as u64);
+        assert!(starts.len() > 300, "{scheme} τ = {tau}: {}", starts.len());
+        let (mut settled, mut worst) = (0, 0.0f64);
+        for chunk in starts.chunks(8) {
+            let asked = RefCell::new(Vec::<(Crossing<2>, f64)>::new());
+            let lanes = locate_upward_lanes_settling::<_, 2, 8>(&map, chunk, &|c, r| {
+                asked.borrow_mut().push((*c, r));
+                true
+            });
+            let refused = locate_upward_lanes_settling::<_, 2, 8>(&map, chunk, &|_, _| false);
+            for (k, step) in chunk.iter().enumerate() {
+                let want = locate_upward(&map, step);
+                assert_eq!(crossing_bits(&refused[k]), crossing_bits(&want));
+                let have = lanes[k];
+                let bound = asked
+                    .borrow()
+                    .iter()
+                    .find(|(c, _)| crossing_bits(c) == crossing_bits(&have))
+                    .map(|&(_, r)| r);
+                let Some(r) = bound else {
+                    assert_eq!(crossing_bits(&have), crossing_bits(&want));
+                    continue;
+                };
+                settled += 1;
+                let off = (have.q[1] - want.q[1])
+                    .abs()
+                    .max((have.p[1] - want.p[1]).abs());
+                assert!(
+                    off <= r,
+                    "{scheme} τ = {tau}: {have:?} is {off:e} from {want:?}, bound {r:e}"
+                );
+                worst = worst.max(off / r);
+            }
+        }
+        let share = settled as f64 / starts.len() as f64;
+        eprintln!("{scheme} τ = {tau}: {share:.4} settled, largest offset {worst:.3} of the bound");
+        assert!(share >= settled_share, "{scheme} τ = {tau}: {share}");
     }
 }
 

@@ -428,6 +428,12 @@ impl BatchFeed<2> for CellsFeed<'_> {
         let o = outcome(self.cell_run, self.checkpoints, self.cells[i], &r, visited);
         self.done.push((i, o));
     }
+    fn books_by_region(&self) -> bool {
+        true
+    }
+    fn same_region(&self, c: &Crossing<2>, radius: f64) -> bool {
+        self.grid.same_cell_within(c.q[1], c.p[1], radius)
+    }
 }
 
 fn initial_point(grid: &Grid, cell: u32) -> ([f64; 2], [f64; 2]) {
@@ -618,6 +624,12 @@ impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
         let o = outcome(self.cell_run, self.checkpoints, cell, &r, visited);
         self.local.offer(o.clone());
         self.source.ended(id as u64, Some(o), r.steps);
+    }
+    fn books_by_region(&self) -> bool {
+        true
+    }
+    fn same_region(&self, c: &Crossing<2>, radius: f64) -> bool {
+        self.grid.same_cell_within(c.q[1], c.p[1], radius)
     }
     fn on_crossing(&mut self, id: usize, c: &Crossing<2>) {
         if let Some(to) = self.grid.cell_of(c.q[1], c.p[1]) {
@@ -944,6 +956,12 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
     }
     fn keeps_crossings(&self) -> bool {
         false
+    }
+    fn books_by_region(&self) -> bool {
+        true
+    }
+    fn same_region(&self, c: &Crossing<2>, radius: f64) -> bool {
+        self.engine.grid.same_cell_within(c.q[1], c.p[1], radius)
     }
     fn cancelled(&mut self, cell: usize) -> bool {
         self.engine.cancelled(cell as u32)

@@ -96,14 +96,29 @@ impl Grid {
 
     /// The cell containing (q2, p2), if inside the grid.
     pub fn cell_of(&self, q2: f64, p2: f64) -> Option<u32> {
-        let (dq, dp) = self.spacing();
-        let fi = ((q2 - self.q2.0) / dq).floor();
-        let fj = ((p2 - self.p2.0) / dp).floor();
+        let (fi, fj) = self.floor_indices(q2, p2);
         if fi >= 0.0 && fj >= 0.0 && (fi as usize) < self.n_q2 && (fj as usize) < self.n_p2 {
             Some(self.index(fi as usize, fj as usize))
         } else {
             None
         }
+    }
+
+    /// Whether every point within `r` of (q2, p2) in each coordinate gets the cell (or the
+    /// absence of one) that [`Grid::cell_of`] gives (q2, p2). The cell index along each
+    /// axis is a monotone function of the coordinate, rounding included, so equal indices at
+    /// both ends of the interval hold for everything between.
+    pub fn same_cell_within(&self, q2: f64, p2: f64, r: f64) -> bool {
+        self.floor_indices(q2 - r, p2 - r) == self.floor_indices(q2 + r, p2 + r)
+    }
+
+    /// The cell indices (i, j) of (q2, p2) as floats, before any range check.
+    fn floor_indices(&self, q2: f64, p2: f64) -> (f64, f64) {
+        let (dq, dp) = self.spacing();
+        (
+            ((q2 - self.q2.0) / dq).floor(),
+            ((p2 - self.p2.0) / dp).floor(),
+        )
     }
 
     pub fn is_compatible(&self, cell: u32) -> bool {
@@ -174,6 +189,42 @@ mod tests {
             0.5 + (80f64).to_radians().cos(),
         );
         Grid::new(0.125, 400, 400, q2, (-0.5, 0.5), (20, 20))
+    }
+
+    /// Whenever `same_cell_within` says yes, every point of the square, corners, edges and
+    /// inside, gets the centre's cell (or none, beyond the grid); it says no when the square
+    /// straddles a cell's edge, down to a radius of one ulp of the coordinate.
+    #[test]
+    fn same_cell_within_agrees_with_cell_of() {
+        let g = paper_grid();
+        let (dq, dp) = g.spacing();
+        let (mut yes, mut no) = (0, 0);
+        for k in 0..20_000u64 {
+            // A cheap spread of points, some beyond the grid, and radii from 1e-16 to 1e-3.
+            let u = |m: u64| ((k * m) % 10_007) as f64 / 10_007.0;
+            let (q2, p2) = (-0.5 + 1.25 * u(7_919), -0.55 + 1.1 * u(104_729));
+            let r = 10f64.powf(-16.0 + 13.0 * u(1_299_709));
+            let want = g.cell_of(q2, p2);
+            if g.same_cell_within(q2, p2, r) {
+                yes += 1;
+                for a in [-1.0, -0.5, 0.0, 0.5, 1.0] {
+                    for b in [-1.0, -0.3, 0.0, 0.7, 1.0] {
+                        assert_eq!(g.cell_of(q2 + a * r, p2 + b * r), want, "{q2} {p2} {r}");
+                    }
+                }
+            } else {
+                no += 1;
+            }
+        }
+        assert!(yes > 10_000 && no > 500, "{yes} {no}");
+        // A point one ulp below an edge, with a radius of two ulps, straddles it.
+        let edge = g.q2.0 + 17.0 * dq;
+        let below = f64::from_bits(edge.to_bits() - 1);
+        if g.cell_of(below, 0.001) != g.cell_of(edge, 0.001) {
+            assert!(!g.same_cell_within(below, 0.001, 2.0 * (edge - below)));
+        }
+        assert!(!g.same_cell_within(g.q2.0 + 3.5 * dq, g.p2.0 + 9.0 * dp, 1e-9));
+        assert!(g.same_cell_within(g.q2.0 + 3.5 * dq, g.p2.0 + 9.5 * dp, 1e-9));
     }
 
     #[test]
