@@ -1,8 +1,8 @@
 //! Cost of locating one section crossing, one at a time (`locate_upward`, the one-orbit
 //! driver's path) and four at a time in SIMD lanes (`locate_upward_lanes`, the batched
-//! driver's), and eight at a time to the cells of a 400×400 grid of (q2, p2) on the section
-//! (`locate_upward_lanes_settling`, the batched driver's for fast PSS): the crossing steps of 16 orbits (SBAB2C,
-//! τ = 0.5, t = 5e4) located again and again, best of 5.
+//! driver's until 2026-11-26), and eight at a time to the cells of a 400×400 grid of (q2, p2)
+//! (`locate_upward_lanes_settling`, the batched driver's for fast PSS): the crossing steps of
+//! 16 orbits (SBAB2C, τ = 0.5, t = 5e4) located again and again, best of 5.
 //!
 //! cargo run --release -p salient-core --example crossing_cost
 

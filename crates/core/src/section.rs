@@ -117,8 +117,8 @@ pub fn locate_upward_lanes<H: Hamiltonian<N>, const N: usize, const L: usize>(
 /// each crossing falls in (a cell of a grid), not the point itself. After each partial step
 /// of a lane's search, `settles(c, r)` is asked whether every point within `r` of `c` in
 /// each of the section's coordinates (q_i, p_i for i ≥ 2) is treated alike; when it says yes,
-/// the lane's search ends there and `c` is its result: a point of the orbit at most a few
-/// 1e-5 (in time) before or after the crossing, with q1 ≈ 0 but not 0. The other lanes return
+/// the lane's search ends there and `c` is its result: a point of the orbit near the crossing
+/// (at τ = 0.5 within a few 1e-5 in time), with q1 ≈ 0 but not 0. The other lanes return
 /// what [`locate_upward_lanes`] returns, bit for bit. So whenever `settles` answers by
 /// the region of `c` alone, every crossing lands in the region of the exact one: `r` bounds
 /// how far the orbit moves between `c` and the root.
