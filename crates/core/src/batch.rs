@@ -630,23 +630,18 @@ fn feed_loop<
                 continue;
             }
             let n = st.n(l);
-            let job = st.jobs[l].as_mut().expect("flagged lanes are active");
-            let qp: [f64; N] = core::array::from_fn(|i| q_prev[i].0[l]);
-            let pp: [f64; N] = core::array::from_fn(|i| p_prev[i].0[l]);
+            let t_prev = (n - 1) as f64 * map.tau();
             if only_crossed & bit != 0 {
                 // Nothing else is due, so the tracker's pass would only flag the crossing: at
                 // τ = 0.5 that pass on every crossing was half the stepping thread's time.
-                let step = CrossingStep {
-                    q: qp,
-                    p: pp,
-                    t: (n - 1) as f64 * map.tau(),
-                    q1_end: st.x.q[0].0[l],
-                };
-                if queued.push(l, step) {
+                if queued.push_lane(l, &q_prev, &p_prev, t_prev, st.x.q[0].0[l]) {
                     queued.flush(map, &mut st.jobs, feed);
                 }
                 continue;
             }
+            let job = st.jobs[l].as_mut().expect("flagged lanes are active");
+            let qp: [f64; N] = core::array::from_fn(|i| q_prev[i].0[l]);
+            let pp: [f64; N] = core::array::from_fn(|i| p_prev[i].0[l]);
             let (mut sx, mut sinc) = get_lane(&st.x, &st.inc, l);
             let q1_end = sx.q[0];
             let mut crossed = false;
@@ -660,16 +655,8 @@ fn feed_loop<
                 &mut job.result,
                 Some(&mut crossed),
             );
-            if crossed {
-                let step = CrossingStep {
-                    q: qp,
-                    p: pp,
-                    t: (n - 1) as f64 * map.tau(),
-                    q1_end,
-                };
-                if queued.push(l, step) {
-                    queued.flush(map, &mut st.jobs, feed);
-                }
+            if crossed && queued.push_lane(l, &q_prev, &p_prev, t_prev, q1_end) {
+                queued.flush(map, &mut st.jobs, feed);
             }
             if stop || n == n_final {
                 queued.flush(map, &mut st.jobs, feed);
@@ -873,10 +860,27 @@ impl<const N: usize> CrossingQueue<N> {
         }
     }
 
-    /// Queues the crossing of lane `l` in `step`; true when the queue is full.
-    fn push(&mut self, l: usize, step: CrossingStep<N>) -> bool {
+    /// Queues the crossing of lane `l` in the step that starts at its lane of (`q`, `p`) at
+    /// time `t` and ends with q1 = `q1_end`; true when the queue is full. Written into the
+    /// slot number by number: a `CrossingStep` assembled first went through the stack in
+    /// pieces of 8 bytes read back as 16 and 32, two failed store forwards per crossing (8 %
+    /// of the stepping loop's samples at τ = 0.5).
+    fn push_lane<const L: usize>(
+        &mut self,
+        l: usize,
+        q: &[Lanes<L>; N],
+        p: &[Lanes<L>; N],
+        t: f64,
+        q1_end: f64,
+    ) -> bool {
+        let slot = &mut self.steps[self.len];
+        for i in 0..N {
+            slot.q[i] = q[i].0[l];
+            slot.p[i] = p[i].0[l];
+        }
+        slot.t = t;
+        slot.q1_end = q1_end;
         self.lane[self.len] = l;
-        self.steps[self.len] = step;
         self.len += 1;
         self.len == LOCATE_LANES
     }
