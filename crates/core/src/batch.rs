@@ -117,6 +117,15 @@ pub trait BatchFeed<const N: usize> {
     fn finished(&mut self, id: usize, result: OrbitResult<N>);
     /// Called for every upward crossing of orbit `id` when it is located.
     fn on_crossing(&mut self, _id: usize, _crossing: &Crossing<N>) {}
+    /// The crossings `crossings` of orbits `ids` (pairwise, in order), located together: one
+    /// [`BatchFeed::on_crossing`] each unless the feed does better with the whole group (the
+    /// fast-PSS feeds find every crossing's cell first, so that the divisions go as vectors
+    /// instead of one pair at a time between calls).
+    fn on_crossings(&mut self, ids: &[usize], crossings: &[Crossing<N>]) {
+        for (&id, c) in ids.iter().zip(crossings) {
+            self.on_crossing(id, c);
+        }
+    }
     /// Whether each result carries its orbit's crossings, as `integrate`'s does. A feed that
     /// books them as they come through [`BatchFeed::on_crossing`] says no: a regular orbit at
     /// τ = 0.5 crosses 1 500 times, and the list's growth (copies, allocations, page faults)
@@ -904,6 +913,7 @@ impl<const N: usize> CrossingQueue<N> {
             locate_upward_lanes::<H, N, LOCATE_LANES>(map, steps)
         };
         let keep = feed.keeps_crossings();
+        let mut ids = [0; LOCATE_LANES];
         for (k, c) in found.iter().take(self.len).enumerate() {
             let job = jobs[self.lane[k]]
                 .as_mut()
@@ -911,8 +921,9 @@ impl<const N: usize> CrossingQueue<N> {
             if keep {
                 job.result.crossings.push(*c);
             }
-            feed.on_crossing(job.id, c);
+            ids[k] = job.id;
         }
+        feed.on_crossings(&ids[..self.len], &found[..self.len]);
         self.len = 0;
     }
 }

@@ -933,6 +933,10 @@ impl CellSet {
     }
 }
 
+/// Crossings whose cells [`LedgerFeed`] finds together (the batched driver locates 8 at a
+/// time).
+const CELLS_AT_ONCE: usize = 8;
+
 /// The embedded engine's feed when one thread both steps and locates: a free lane takes the
 /// next cell the ledger needs, and a finished orbit goes to the ledger at once.
 struct LedgerFeed<'a, P> {
@@ -951,9 +955,23 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
         self.engine.commit(cell as u32, &r, visited);
     }
     fn on_crossing(&mut self, cell: usize, c: &Crossing<2>) {
+        self.on_crossings(&[cell], core::slice::from_ref(c));
+    }
+    fn on_crossings(&mut self, cells: &[usize], crossings: &[Crossing<2>]) {
         let e = self.engine;
-        if let Some(to) = e.grid.cell_of(c.q[1], c.p[1]) {
-            self.book.crossed(e.grid, e.claims, cell as u32, to);
+        for (cells, crossings) in cells
+            .chunks(CELLS_AT_ONCE)
+            .zip(crossings.chunks(CELLS_AT_ONCE))
+        {
+            let pick = |k: usize| &crossings[k.min(crossings.len() - 1)];
+            let q2: [f64; CELLS_AT_ONCE] = core::array::from_fn(|k| pick(k).q[1]);
+            let p2: [f64; CELLS_AT_ONCE] = core::array::from_fn(|k| pick(k).p[1]);
+            let to = e.grid.cells_of(&q2, &p2);
+            for (&from, to) in cells.iter().zip(to) {
+                if let Some(to) = to {
+                    self.book.crossed(e.grid, e.claims, from as u32, to);
+                }
+            }
         }
     }
     fn keeps_crossings(&self) -> bool {

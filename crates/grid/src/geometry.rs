@@ -105,6 +105,19 @@ impl Grid {
         }
     }
 
+    /// [`Grid::cell_of`] of `L` points at once: the same operations on arrays, so that the
+    /// divisions go as vectors.
+    pub fn cells_of<const L: usize>(&self, q2: &[f64; L], p2: &[f64; L]) -> [Option<u32>; L] {
+        let (dq, dp) = self.step;
+        let fi: [f64; L] = core::array::from_fn(|k| ((q2[k] - self.q2.0) / dq).floor());
+        let fj: [f64; L] = core::array::from_fn(|k| ((p2[k] - self.p2.0) / dp).floor());
+        core::array::from_fn(|k| {
+            let (fi, fj) = (fi[k], fj[k]);
+            (fi >= 0.0 && fj >= 0.0 && (fi as usize) < self.n_q2 && (fj as usize) < self.n_p2)
+                .then(|| self.index(fi as usize, fj as usize))
+        })
+    }
+
     /// Whether every point within `r` of (q2, p2) in each coordinate gets the cell (or the
     /// absence of one) that [`Grid::cell_of`] gives (q2, p2). The cell index along each
     /// axis is a monotone function of the coordinate, rounding included, so equal indices at
@@ -233,6 +246,37 @@ mod tests {
         }
         assert!(!g.same_cell_within(g.q2.0 + 3.5 * dq, g.p2.0 + 9.0 * dp, 1e-9));
         assert!(g.same_cell_within(g.q2.0 + 3.5 * dq, g.p2.0 + 9.5 * dp, 1e-9));
+    }
+
+    #[test]
+    fn cells_of_agrees_with_cell_of() {
+        let g = paper_grid();
+        let (dq, dp) = g.spacing();
+        // Points spread over and beyond the grid, and points one ulp either side of edges
+        // (where a different rounding would show).
+        let edge = |x: f64, ulps: i64| f64::from_bits((x.to_bits() as i64 + ulps) as u64);
+        let mut points = Vec::new();
+        for k in 0..4_000u64 {
+            let u = |m: u64| ((k * m) % 10_007) as f64 / 10_007.0;
+            points.push((-0.5 + 1.25 * u(7_919), -0.55 + 1.1 * u(104_729)));
+            let (i, j) = ((k % 401) as f64, ((k * 37) % 401) as f64);
+            let (q2, p2) = (g.q2.0 + i * dq, g.p2.0 + j * dp);
+            points.push((edge(q2, k as i64 % 3 - 1), edge(p2, (k / 3) as i64 % 3 - 1)));
+        }
+        let (mut inside, mut outside) = (0, 0);
+        for group in points.chunks_exact(8) {
+            let q2: [f64; 8] = core::array::from_fn(|k| group[k].0);
+            let p2: [f64; 8] = core::array::from_fn(|k| group[k].1);
+            for (k, cell) in g.cells_of(&q2, &p2).into_iter().enumerate() {
+                assert_eq!(cell, g.cell_of(q2[k], p2[k]), "{} {}", q2[k], p2[k]);
+                if cell.is_some() {
+                    inside += 1;
+                } else {
+                    outside += 1;
+                }
+            }
+        }
+        assert!(inside > 4_000 && outside > 500, "{inside} {outside}");
     }
 
     #[test]
