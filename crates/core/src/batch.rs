@@ -119,8 +119,8 @@ pub trait BatchFeed<const N: usize> {
     fn on_crossing(&mut self, _id: usize, _crossing: &Crossing<N>) {}
     /// The crossings `crossings` of orbits `ids` (pairwise, in order), located together: one
     /// [`BatchFeed::on_crossing`] each unless the feed does better with the whole group (the
-    /// fast-PSS feeds find every crossing's cell first, so that the divisions go as vectors
-    /// instead of one pair at a time between calls).
+    /// embedded fast-PSS feed finds every crossing's cell first, so that the divisions go as
+    /// vectors instead of one pair at a time between calls).
     fn on_crossings(&mut self, ids: &[usize], crossings: &[Crossing<N>]) {
         for (&id, c) in ids.iter().zip(crossings) {
             self.on_crossing(id, c);

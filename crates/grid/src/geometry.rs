@@ -97,16 +97,12 @@ impl Grid {
 
     /// The cell containing (q2, p2), if inside the grid.
     pub fn cell_of(&self, q2: f64, p2: f64) -> Option<u32> {
-        let (fi, fj) = self.floor_indices(q2, p2);
-        if fi >= 0.0 && fj >= 0.0 && (fi as usize) < self.n_q2 && (fj as usize) < self.n_p2 {
-            Some(self.index(fi as usize, fj as usize))
-        } else {
-            None
-        }
+        let [cell] = self.cells_of(&[q2], &[p2]);
+        cell
     }
 
-    /// [`Grid::cell_of`] of `L` points at once: the same operations on arrays, so that the
-    /// divisions go as vectors.
+    /// [`Grid::cell_of`] of `L` points at once, written over arrays so that the divisions go
+    /// as vectors.
     pub fn cells_of<const L: usize>(&self, q2: &[f64; L], p2: &[f64; L]) -> [Option<u32>; L] {
         let (dq, dp) = self.step;
         let fi: [f64; L] = core::array::from_fn(|k| ((q2[k] - self.q2.0) / dq).floor());
@@ -123,23 +119,15 @@ impl Grid {
     /// axis is a monotone function of the coordinate, rounding included, so equal indices at
     /// both ends of the interval hold for everything between.
     pub fn same_cell_within(&self, q2: f64, p2: f64, r: f64) -> bool {
-        // floor_indices at both corners, written over one array so that the four divisions
-        // go as one vector instruction (the operations, and so the bits, are the same).
+        // cells_of's floors at both corners, written over one array so that the four
+        // divisions go as one vector instruction (the operations, and so the bits, are the
+        // same).
         let (dq, dp) = self.step;
         let x = [q2 - r, q2 + r, p2 - r, p2 + r];
         let lo = [self.q2.0, self.q2.0, self.p2.0, self.p2.0];
         let w = [dq, dq, dp, dp];
         let f: [f64; 4] = core::array::from_fn(|k| ((x[k] - lo[k]) / w[k]).floor());
         f[0] == f[1] && f[2] == f[3]
-    }
-
-    /// The cell indices (i, j) of (q2, p2) as floats, before any range check.
-    fn floor_indices(&self, q2: f64, p2: f64) -> (f64, f64) {
-        let (dq, dp) = self.step;
-        (
-            ((q2 - self.q2.0) / dq).floor(),
-            ((p2 - self.p2.0) / dp).floor(),
-        )
     }
 
     pub fn is_compatible(&self, cell: u32) -> bool {
@@ -249,9 +237,14 @@ mod tests {
     }
 
     #[test]
-    fn cells_of_agrees_with_cell_of() {
+    fn cells_of_in_lanes_equals_the_scalar_formula() {
         let g = paper_grid();
         let (dq, dp) = g.spacing();
+        let scalar = |q2: f64, p2: f64| {
+            let (fi, fj) = (((q2 - g.q2.0) / dq).floor(), ((p2 - g.p2.0) / dp).floor());
+            let inside = fi >= 0.0 && fj >= 0.0 && fi < g.n_q2 as f64 && fj < g.n_p2 as f64;
+            inside.then(|| (fi as usize * g.n_p2 + fj as usize) as u32)
+        };
         // Points spread over and beyond the grid, and points one ulp either side of edges
         // (where a different rounding would show).
         let edge = |x: f64, ulps: i64| f64::from_bits((x.to_bits() as i64 + ulps) as u64);
@@ -268,7 +261,8 @@ mod tests {
             let q2: [f64; 8] = core::array::from_fn(|k| group[k].0);
             let p2: [f64; 8] = core::array::from_fn(|k| group[k].1);
             for (k, cell) in g.cells_of(&q2, &p2).into_iter().enumerate() {
-                assert_eq!(cell, g.cell_of(q2[k], p2[k]), "{} {}", q2[k], p2[k]);
+                assert_eq!(cell, scalar(q2[k], p2[k]), "{} {}", q2[k], p2[k]);
+                assert_eq!(cell, g.cell_of(q2[k], p2[k]));
                 if cell.is_some() {
                     inside += 1;
                 } else {
