@@ -7,10 +7,9 @@
 //! cargo run --release -p salient-core --example crossing_cost
 
 use salient_core::section::{
-    locate_upward, locate_upward_lanes, locate_upward_lanes_settling, on_section, Crossing,
-    CrossingStep,
+    locate_upward, locate_upward_lanes, locate_upward_lanes_settling, on_section,
+    upward_crossing_steps, Crossing, CrossingStep,
 };
-use salient_core::tangent::{Phase, Stepping};
 use salient_core::{HenonHeiles, Scheme, TangentMap};
 use std::hint::black_box;
 use std::time::Instant;
@@ -19,29 +18,12 @@ fn main() {
     let ham = HenonHeiles;
     let tau = 0.5;
     let map = TangentMap::new(&ham, &Scheme::by_name("sbab2c").unwrap(), tau);
-    let mut starts = Vec::new();
-    for i in 0..16 {
-        let (q, p) = on_section(&ham, 0.125, &[0.3 + 0.02 * i as f64], &[0.0]).unwrap();
-        let x = Phase::<f64, 2, 0> {
-            q,
-            p,
-            dq: [],
-            dp: [],
-        };
-        let mut s = Stepping::new(&map, x);
-        for n in 0..100_000 {
-            let (q0, p0) = (s.x.q, s.x.p);
-            s.advance();
-            if q0[0] < 0.0 && s.x.q[0] >= 0.0 {
-                starts.push(CrossingStep {
-                    q: q0,
-                    p: p0,
-                    t: n as f64 * tau,
-                    q1_end: s.x.q[0],
-                });
-            }
-        }
-    }
+    let starts: Vec<CrossingStep<2>> = (0..16)
+        .flat_map(|i| {
+            let (q, p) = on_section(&ham, 0.125, &[0.3 + 0.02 * i as f64], &[0.0]).unwrap();
+            upward_crossing_steps(&map, q, p, 100_000)
+        })
+        .collect();
     let best = |f: &dyn Fn() -> f64| {
         (0..5)
             .map(|_| {

@@ -2,7 +2,7 @@
 
 use crate::hamiltonian::Hamiltonian;
 use crate::real::Lanes;
-use crate::tangent::{StepPart, TangentMap};
+use crate::tangent::{Phase, StepPart, Stepping, TangentMap};
 
 /// A point where the orbit crosses q1 = 0 upwards (p1 > 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -86,6 +86,38 @@ impl<const N: usize> CrossingStep<N> {
         t: 0.0,
         q1_end: 0.0,
     };
+}
+
+/// The steps of the orbit from (`q`, `p`) (no deviation vectors) that cross q1 = 0 upwards
+/// within its first `steps` steps of `map`, in time order: the input of the crossing searches
+/// for tests and benchmarks that exercise them apart from a driver.
+pub fn upward_crossing_steps<H: Hamiltonian<N>, const N: usize>(
+    map: &TangentMap<'_, H>,
+    q: [f64; N],
+    p: [f64; N],
+    steps: u64,
+) -> Vec<CrossingStep<N>> {
+    let x = Phase::<f64, N, 0> {
+        q,
+        p,
+        dq: [],
+        dp: [],
+    };
+    let mut s = Stepping::new(map, x);
+    let mut found = Vec::new();
+    for n in 0..steps {
+        let (q0, p0) = (s.x.q, s.x.p);
+        s.advance();
+        if q0[0] < 0.0 && s.x.q[0] >= 0.0 {
+            found.push(CrossingStep {
+                q: q0,
+                p: p0,
+                t: n as f64 * map.tau(),
+                q1_end: s.x.q[0],
+            });
+        }
+    }
+    found
 }
 
 /// Locates the upward crossing of q1 = 0 inside `step`.

@@ -212,31 +212,11 @@ fn crossing_steps(
     orbits: usize,
     steps: u64,
 ) -> Vec<salient_core::section::CrossingStep<2>> {
-    use salient_core::section::CrossingStep;
-    use salient_core::tangent::{Phase, Stepping};
-    let mut starts = Vec::new();
-    for &(q, p) in ics().iter().take(orbits) {
-        let x = Phase::<f64, 2, 0> {
-            q,
-            p,
-            dq: [],
-            dp: [],
-        };
-        let mut s = Stepping::new(map, x);
-        for n in 0..steps {
-            let (q0, p0) = (s.x.q, s.x.p);
-            s.advance();
-            if q0[0] < 0.0 && s.x.q[0] >= 0.0 {
-                starts.push(CrossingStep {
-                    q: q0,
-                    p: p0,
-                    t: n as f64 * map.tau(),
-                    q1_end: s.x.q[0],
-                });
-            }
-        }
-    }
-    starts
+    ics()
+        .iter()
+        .take(orbits)
+        .flat_map(|&(q, p)| salient_core::section::upward_crossing_steps(map, q, p, steps))
+        .collect()
 }
 
 fn crossing_bits(c: &salient_core::section::Crossing<2>) -> [u64; 5] {
