@@ -136,15 +136,40 @@ fn run_writes_the_contract_and_never_lists_incompatible_cells() {
         "i,j,q2,p2,sali,class,status,label_source,t_end"
     );
     let mut rows = 0;
+    // q2 by i, p2 by j, and each labelling orbit's (sali, class, status, t_end) by its cell.
+    let mut q2_of_i = std::collections::HashMap::new();
+    let mut p2_of_j = std::collections::HashMap::new();
+    let mut orbit_of_row = std::collections::HashMap::new();
+    let mut sources = Vec::new();
     for l in lines {
         let f: Vec<&str> = l.split(',').collect();
         let (q2, p2): (f64, f64) = (f[2].parse().unwrap(), f[3].parse().unwrap());
         let radicand = 0.25 - p2 * p2 - q2 * q2 + 2.0 * q2 * q2 * q2 / 3.0;
         assert!(radicand > 0.0, "incompatible cell listed: {l}");
         assert!(["regular", "sticky", "chaotic"].contains(&f[5]), "{l}");
+        assert_eq!(*q2_of_i.entry(f[0]).or_insert(f[2]), f[2], "{l}");
+        assert_eq!(*p2_of_j.entry(f[1]).or_insert(f[3]), f[3], "{l}");
+        let (i, j): (u32, u32) = (f[0].parse().unwrap(), f[1].parse().unwrap());
+        let orbit = [f[4], f[5], f[6], f[8]].join(",");
+        orbit_of_row.insert(i * 40 + j, orbit.clone());
+        sources.push((f[7].parse::<u32>().unwrap(), orbit));
         rows += 1;
     }
     assert_eq!(rows as u64, r["compatible"].as_u64().unwrap());
+    // Every cell carries what its labelling orbit's own cell carries.
+    for (source, orbit) in &sources {
+        assert_eq!(orbit_of_row.get(source), Some(orbit), "source {source}");
+    }
+    // q2 grows with i and p2 with j.
+    let ascending = |m: &std::collections::HashMap<&str, &str>| {
+        let mut v: Vec<(u32, f64)> = m
+            .iter()
+            .map(|(k, x)| (k.parse().unwrap(), x.parse().unwrap()))
+            .collect();
+        v.sort_by_key(|e| e.0);
+        v.windows(2).all(|w| w[0].1 < w[1].1)
+    };
+    assert!(ascending(&q2_of_i) && ascending(&p2_of_j));
     let npy = std::fs::read(run.join("sali.npy")).unwrap();
     assert!(npy.starts_with(b"\x93NUMPY"));
     assert_eq!(npy.len() % 16, (128 + 40 * 40 * 8) % 16);
