@@ -25,9 +25,31 @@ use crate::tangent::{EdgeIncrement, Phase, TangentMap};
 // `LaneState::energy_phase` has a bit per phase of the energy checks.
 const _: () = assert!(ENERGY_CHECK_EVERY <= 64);
 
-/// A copy of `a` made one vector at a time (see its use in [`feed_loop`]).
+/// A copy of `a` made one vector at a time (see its use in [`feed_loop`]). With 4 lanes each
+/// element is one 256-bit load that LLVM can neither merge with its neighbour into a 512-bit
+/// move nor split: a volatile read of the array type went as four scalar loads and stores per
+/// vector (32 memory operations a step), and the crossing test then read q1 back as a vector
+/// from the four stores, which store forwarding cannot serve.
 #[inline(always)]
 fn vector_copy<const N: usize, const L: usize>(a: &[Lanes<L>; N]) -> [Lanes<L>; N] {
+    #[cfg(target_arch = "x86_64")]
+    if L == 4 {
+        return core::array::from_fn(|i| {
+            let v: core::arch::x86_64::__m256d;
+            // SAFETY: an aligned 32-byte read (`Lanes` is 32-aligned, and with 4 lanes 32 bytes)
+            // of an initialised element of a live array; AVX is part of the pinned target level
+            // (x86-64-v3), so the register class exists in every copy of the driver.
+            unsafe {
+                core::arch::asm!(
+                    "vmovapd {v}, ymmword ptr [{p}]",
+                    v = out(ymm_reg) v,
+                    p = in(reg) &a[i] as *const Lanes<L>,
+                    options(pure, readonly, nostack, preserves_flags),
+                );
+                core::mem::transmute_copy::<core::arch::x86_64::__m256d, Lanes<L>>(&v)
+            }
+        });
+    }
     // SAFETY: reads of initialised, aligned elements of a live array.
     core::array::from_fn(|i| unsafe { core::ptr::read_volatile(&a[i]) })
 }
