@@ -32,13 +32,12 @@ const _: () = assert!(ENERGY_CHECK_EVERY <= 64);
 /// from the four stores, which store forwarding cannot serve.
 #[inline(always)]
 fn vector_copy<const N: usize, const L: usize>(a: &[Lanes<L>; N]) -> [Lanes<L>; N] {
-    #[cfg(target_arch = "x86_64")]
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
     if L == 4 {
         return core::array::from_fn(|i| {
             let v: core::arch::x86_64::__m256d;
             // SAFETY: an aligned 32-byte read (`Lanes` is 32-aligned, and with 4 lanes 32 bytes)
-            // of an initialised element of a live array; AVX is part of the pinned target level
-            // (x86-64-v3), so the register class exists in every copy of the driver.
+            // of an initialised element of a live array (AVX is compiled in: see the `cfg`).
             unsafe {
                 core::arch::asm!(
                     "vmovapd {v}, ymmword ptr [{p}]",
@@ -531,9 +530,11 @@ unsafe fn feed_loop_avx512<
     feed: &mut impl BatchFeed<N>,
 ) {
     // `batch_profile` on an Intel AVX-512 host: 8 lanes 5.45 → 4.65 ns per orbit-step with the
-    // state resident, 4 lanes 6.2 → 6.7.
+    // state resident, 4 lanes 6.2 → 6.7. The resident loop keeps the map's own dispatch:
+    // compiled for a fixed shape it kept its state in memory (4.6 → 9.3 ns).
     if L >= 8 {
-        feed_loop::<H, N, K, L, true, S>(shape, map, config, requests, feed)
+        let _ = shape;
+        feed_loop::<H, N, K, L, true, AnyShape>(AnyShape, map, config, requests, feed)
     } else {
         feed_loop::<H, N, K, L, false, S>(shape, map, config, requests, feed)
     }
@@ -634,9 +635,7 @@ fn feed_loop<
         // `RESIDENT`): screening the stored state made the compiler reload it in pieces that
         // defeat store forwarding (a third of the 8-lane AVX-512 loop).
         let x = if RESIDENT {
-            // The map's own dispatch: the 8-lane loop compiled with a fixed shape keeps its
-            // state in memory instead (`batch_profile`: 4.6 → 9.3 ns per orbit-step).
-            map.advance(&mut x_kept, &mut inc_kept);
+            shape.advance(map, &mut x_kept, &mut inc_kept);
             x_kept
         } else {
             let mut x = st.x;
