@@ -262,8 +262,6 @@ struct LaneState<'h, H, const N: usize, const K: usize, const L: usize> {
     /// the tracker's check (a spurious flag costs one scalar pass that does nothing).
     drift_screen: Lanes<L>,
     active: [bool; L],
-    /// `active` as bits (lane `l` is bit `l`), for the tests made at every step.
-    active_bits: u64,
     /// Steps taken by the driver, all lanes together.
     step: u64,
     /// `step` when each lane's orbit came in: the orbit has taken `step - start[l]` steps.
@@ -295,7 +293,6 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             h0: Lanes([0.0; L]),
             drift_screen: Lanes([0.0; L]),
             active: [false; L],
-            active_bits: 0,
             step: 0,
             start: [0; L],
             sample_at: [u64::MAX; L],
@@ -394,7 +391,6 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         };
         set_lane(&mut self.x, &mut self.inc, l, &sx, &map.edge_increment(&sx));
         self.active[l] = job.is_some();
-        self.active_bits = (self.active_bits & !(1 << l)) | (u64::from(job.is_some()) << l);
         self.start[l] = self.step;
         self.sample_at[l] = job
             .as_ref()
@@ -580,7 +576,6 @@ fn feed_loop<
         initial: initial_vectors::<N, K>(config.deviation),
     };
     let mut st = LaneState::<H, N, K, L>::new(map, n_final, requests.energy);
-    let all_lanes = lane_bits::<L>(|_| true);
     for l in 0..L {
         st.fill(l, false, &setup, feed);
     }
@@ -605,7 +600,7 @@ fn feed_loop<
     let (mut x_kept, mut inc_kept) = (st.x, st.inc);
 
     loop {
-        if st.active_bits == 0 {
+        if !st.active.iter().any(|&a| a) {
             if st.exhausted {
                 return;
             }
@@ -651,7 +646,7 @@ fn feed_loop<
         } = screen(ham, &x, &mut st, &screen_rules, &q_prev[0]);
         let full_poll = step.is_multiple_of(poll);
         let idle_poll =
-            step.is_multiple_of(IDLE_POLL) && !st.exhausted && st.active_bits != all_lanes;
+            step.is_multiple_of(IDLE_POLL) && !st.exhausted && st.active.iter().any(|&a| !a);
         // The scalar paths below read and write the lanes' state in `st`. (Storing it only
         // where they need it measured slower: reading lanes of the local copy made LLVM keep
         // that copy in memory.)
@@ -809,7 +804,7 @@ fn screen<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
         for n2k in &n2 {
             f |= out_of_band_bits(*n2k);
         }
-        let active = st.active_bits;
+        let active = lane_bits::<L>(|l| st.active[l]);
         if energy_due & active != 0 {
             let dh = ham.energy(&x.q, &x.p) - st.h0;
             let dh_abs = Lanes(core::array::from_fn(|l| dh.0[l].abs()));
