@@ -553,9 +553,6 @@ fn add_kick_increment<T: Real, const N: usize, const K: usize>(
 /// ns per orbit-step: 4 pinned lanes 7.0 → 5.6, 4 AVX-512 lanes 5.85 → 5.3, 8 AVX-512 lanes
 /// unchanged (4.6–4.7).
 pub(crate) trait StepShape: Copy {
-    /// The shape of `map`'s steps, if it has this one.
-    fn of<H>(map: &TangentMap<'_, H>) -> Option<Self>;
-
     /// [`TangentMap::advance`] for the map the shape was read from: the same operations.
     fn advance<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
         self,
@@ -570,10 +567,6 @@ pub(crate) trait StepShape: Copy {
 pub(crate) struct AnyShape;
 
 impl StepShape for AnyShape {
-    fn of<H>(_map: &TangentMap<'_, H>) -> Option<Self> {
-        Some(AnyShape)
-    }
-
     #[inline(always)]
     fn advance<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
         self,
@@ -594,8 +587,9 @@ pub(crate) struct CorrectedDkd {
     body: [f64; 3],
 }
 
-impl StepShape for CorrectedDkd {
-    fn of<H>(map: &TangentMap<'_, H>) -> Option<Self> {
+impl CorrectedDkd {
+    /// The shape of `map`'s steps, if it is this one.
+    pub(crate) fn of<H>(map: &TangentMap<'_, H>) -> Option<Self> {
         let SubMap::KickCorrector(b, c) = map.edge else {
             return None;
         };
@@ -607,7 +601,9 @@ impl StepShape for CorrectedDkd {
         let nonzero = [b, c, body[1]].iter().all(|&v| v != 0.0);
         nonzero.then_some(CorrectedDkd { edge: (b, c), body })
     }
+}
 
+impl StepShape for CorrectedDkd {
     #[inline(always)]
     fn advance<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
         self,
