@@ -108,6 +108,13 @@ pub trait Hamiltonian<const N: usize>: Send + Sync {
         None
     }
 
+    /// Upper bounds of V's derivatives and the corrector's over the ball |q| ≤ r, or `None`
+    /// where the system gives none (the batched driver then screens every step; see
+    /// [`crate::batch`]'s quiet windows, which rest on these bounds).
+    fn derivative_bounds(&self, _r: f64) -> Option<DerivativeBounds> {
+        None
+    }
+
     /// H(q, p).
     #[inline(always)]
     fn energy<T: Real>(&self, q: &[T; N], p: &[T; N]) -> T {
@@ -123,6 +130,19 @@ pub struct KickTerms<T, const N: usize> {
     pub force: [T; N],
     /// Its Jacobian: δp gains matrix·δq.
     pub matrix: [[T; N]; N],
+}
+
+/// Suprema over a ball |q| ≤ r (Euclidean norms; spectral norms of the matrices).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DerivativeBounds {
+    /// |∇V|.
+    pub grad: f64,
+    /// ‖D²V‖.
+    pub hessian: f64,
+    /// |∇K| with K = |∇V|², the corrector's potential.
+    pub corrector_grad: f64,
+    /// ‖D²K‖.
+    pub corrector_hessian: f64,
 }
 
 /// The Hénon–Heiles system: V = ½(q1² + q2²) + q1²q2 − q2³/3. Escape energy 1/6.
@@ -260,6 +280,20 @@ impl Hamiltonian<2> for HenonHeiles {
         2.0
     }
 
+    /// With ρ = |q|: ∇V = q + (2q1q2, q1² − q2²), and the second part has length ρ², so
+    /// |∇V| ≤ ρ + ρ². D²V = I + 2[[q2, q1], [q1, −q2]] has eigenvalues 1 ± 2ρ. The only third
+    /// derivatives are V_112 = 2 and V_222 = −2, so D³V(w, ·, ·) = 2[[w2, w1], [w1, −w2]] has
+    /// norm 2|w|. Then ∇K = 2 D²V ∇V and D²K = 2(D²V² + D³V(∇V, ·, ·)).
+    fn derivative_bounds(&self, r: f64) -> Option<DerivativeBounds> {
+        let (grad, hessian) = (r + r * r, 1.0 + 2.0 * r);
+        Some(DerivativeBounds {
+            grad,
+            hessian,
+            corrector_grad: 2.0 * hessian * grad,
+            corrector_hessian: 2.0 * (hessian * hessian + 2.0 * grad),
+        })
+    }
+
     fn escape_energy(&self) -> Option<f64> {
         Some(1.0 / 6.0)
     }
@@ -291,6 +325,43 @@ mod tests {
         [0.05, 0.6],
         [1.3, -0.9],
     ];
+
+    /// The bounds hold at points all over and on the edge of balls of several radii: the
+    /// norms of ∇V, D²V, ∇K and D²K (2×2 symmetric: the largest |eigenvalue|) never exceed
+    /// them, and on the edge the gradient's and Hessian's bounds are reached to 1 %.
+    #[test]
+    fn derivative_bounds_hold_over_the_ball() {
+        let h = HenonHeiles;
+        let spectral = |m: [[f64; 2]; 2]| {
+            let (mean, d) = ((m[0][0] + m[1][1]) / 2.0, (m[0][0] - m[1][1]) / 2.0);
+            let rad = (d * d + m[0][1] * m[0][1]).sqrt();
+            (mean + rad).abs().max((mean - rad).abs())
+        };
+        let norm = |v: [f64; 2]| v[0].hypot(v[1]);
+        for r in [0.1, 0.7, 1.0, 2.0] {
+            let b = h.derivative_bounds(r).unwrap();
+            let mut reached = [0.0f64; 2];
+            for i in 0..720 {
+                let angle = i as f64 * core::f64::consts::PI / 360.0;
+                for frac in [1.0, 0.9, 0.5, 0.1] {
+                    let q = [r * frac * angle.cos(), r * frac * angle.sin()];
+                    let seen = [
+                        norm(h.grad(&q)),
+                        spectral(h.hessian(&q)),
+                        norm(h.corrector_grad(&q)),
+                        spectral(h.corrector_hessian(&q)),
+                    ];
+                    let bound = [b.grad, b.hessian, b.corrector_grad, b.corrector_hessian];
+                    for k in 0..4 {
+                        assert!(seen[k] <= bound[k] * (1.0 + 1e-12), "r {r} q {q:?} {k}");
+                    }
+                    reached[0] = reached[0].max(seen[0] / b.grad);
+                    reached[1] = reached[1].max(seen[1] / b.hessian);
+                }
+            }
+            assert!(reached.iter().all(|&x| x > 0.99), "r {r}: {reached:?}");
+        }
+    }
 
     #[test]
     fn gradient_matches_finite_differences_of_potential() {

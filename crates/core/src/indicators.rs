@@ -9,8 +9,8 @@
 use nalgebra::DMatrix;
 
 /// Norm² bounds outside which a deviation vector is rescaled.
-const RESCALE_ABOVE: f64 = f64::from_bits((1023 + 256) << 52); // 2^256
-const RESCALE_BELOW: f64 = f64::from_bits((1023 - 256) << 52); // 2^-256
+pub(crate) const RESCALE_ABOVE: f64 = f64::from_bits((1023 + 256) << 52); // 2^256
+pub(crate) const RESCALE_BELOW: f64 = f64::from_bits((1023 - 256) << 52); // 2^-256
 
 /// If the squared norm `n2` has left [2^-256, 2^256], the power of two `s` that brings the norm
 /// back to [1, 4) and its exponent: the vector must be multiplied by `s = 2^-e`. `None` when the
