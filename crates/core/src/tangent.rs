@@ -708,6 +708,8 @@ impl<'m, 'h, H: Hamiltonian<N>, const N: usize, const K: usize> Stepping<'m, 'h,
 mod tests {
     use super::*;
     use crate::hamiltonian::HenonHeiles;
+    use crate::indicators::norm2;
+    use crate::real::dot;
 
     fn r1() -> ([f64; 2], [f64; 2]) {
         let (q2, p2) = (0.558f64, 0.0f64);
@@ -730,16 +732,11 @@ mod tests {
             let p1 = (0.25 - p2 * p2 - q2 * q2 + 2.0 * q2 * q2 * q2 / 3.0).sqrt();
             ([0.0, q2], [p1, p2])
         };
-        let norm = |x: &Phase<f64, 2, 4>, k: usize| {
-            (x.dq[k][0].powi(2) + x.dq[k][1].powi(2) + x.dp[k][0].powi(2) + x.dp[k][1].powi(2))
-                .sqrt()
-        };
+        let norm = |x: &Phase<f64, 2, 4>, k: usize| norm2(&x.dq[k], &x.dp[k]).sqrt();
+        // The windows' vectors start far from aligned, where 1 − cos² loses nothing.
         let sine = |x: &Phase<f64, 2, 4>, a: usize, b: usize| {
-            let dot = x.dq[a][0] * x.dq[b][0]
-                + x.dq[a][1] * x.dq[b][1]
-                + x.dp[a][0] * x.dp[b][0]
-                + x.dp[a][1] * x.dp[b][1];
-            let cos = dot / (norm(x, a) * norm(x, b));
+            let c = dot(&x.dq[a], &x.dq[b]) + dot(&x.dp[a], &x.dp[b]);
+            let cos = c / (norm(x, a) * norm(x, b));
             (1.0 - cos * cos).max(0.0).sqrt()
         };
         let mut windows = 0;
