@@ -7,6 +7,7 @@
 
 use crate::geometry::Grid;
 use crate::ledger::{Forecast, Ledger, Mode, Outcome};
+use crate::pages::owned;
 use rayon::prelude::*;
 use salient_core::batch::{integrate_feed, BatchFeed, Feed, Isa};
 use salient_core::method::Method;
@@ -159,13 +160,25 @@ impl Claims {
             position: (0..grid.cells() as u32)
                 .map(|c| grid.position(c).map_or(u32::MAX, |p| p as u32))
                 .collect(),
-            claimed: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
-            told: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+            claimed: owned(
+                (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+                || AtomicBool::new(false),
+            ),
+            told: owned(
+                (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+                || AtomicBool::new(false),
+            ),
             crossed_by: (0..grid.cells())
                 .map(|_| core::array::from_fn(|_| AtomicU32::new(u32::MAX)))
                 .collect(),
-            running: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
-            pending_claimed: (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+            running: owned(
+                (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+                || AtomicBool::new(false),
+            ),
+            pending_claimed: owned(
+                (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+                || AtomicBool::new(false),
+            ),
             stopped: AtomicU64::new(0),
             abandoned: AtomicU64::new(0),
             abandoned_steps: AtomicU64::new(0),

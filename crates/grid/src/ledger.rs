@@ -9,6 +9,7 @@
 //! An outcome whose cell an earlier commit labelled is dropped and counted.
 
 use crate::geometry::Grid;
+use crate::pages::owned;
 use salient_core::orbit::{Class, Status};
 use std::collections::BTreeMap;
 
@@ -173,7 +174,7 @@ impl Ledger {
             committed_steps: 0,
             newly_labelled: Vec::new(),
             claims: ClaimCounts {
-                early: vec![0; cells],
+                early: owned(vec![0; cells], || 0),
                 changes: None,
             },
             reopened: 0,

@@ -6,6 +6,7 @@
 pub mod executor;
 pub mod geometry;
 pub mod ledger;
+mod pages;
 pub mod spec;
 pub mod summary;
 
