@@ -31,10 +31,16 @@ p = r["percent"]
 print("%-8s %s thread(s) %8.3f s   %.2f / %.2f / %.2f %%   %s" % (
     who, threads, r["wall_s"], p["regular"], p["sticky"], p["chaotic"], work))
 PY
+# Each program's JSON goes to a file and is read after it exits: a reader started beside it
+# (python3 at the end of a pipe) takes one of the two cores while its interpreter starts, and
+# that cost a 2-thread run ~50 ms of its ~0.17 s (alternated: 0.206-0.235 s through a pipe,
+# 0.162-0.180 s to a file).
 for round in $(seq "$rounds"); do
-  "$work/fastpss" "$tau" "$t_final" | python3 "$work/row.py" "plain C" 1
+  "$work/fastpss" "$tau" "$t_final" > "$work/c.json"
+  python3 "$work/row.py" "plain C" 1 < "$work/c.json"
   for threads in 1 2; do
     ./target/release/salient run "$work/spec.toml" --threads "$threads" --json \
-        --out "$work/out" 2>/dev/null | python3 "$work/row.py" salient "$threads"
+        --out "$work/out" > "$work/salient.json" 2>/dev/null
+    python3 "$work/row.py" salient "$threads" < "$work/salient.json"
   done
 done
