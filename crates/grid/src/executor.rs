@@ -157,9 +157,7 @@ impl Claims {
     pub fn new(grid: &Grid) -> Self {
         Claims {
             frontier: AtomicUsize::new(0),
-            position: (0..grid.cells() as u32)
-                .map(|c| grid.position(c).map_or(u32::MAX, |p| p as u32))
-                .collect(),
+            position: grid.positions().to_vec(),
             claimed: owned(
                 (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
                 || AtomicBool::new(false),
@@ -1055,8 +1053,9 @@ pub fn run_embedded_forecast(
         }
         return ledger;
     }
-    let claims = Claims::new(grid);
-    let mut ledger = Ledger::new(grid, mode);
+    // Both are a few MB of per-cell arrays written before any orbit runs (2.9 → 2.0 ms of a
+    // 0.17 s run at 400×400).
+    let (claims, mut ledger) = rayon::join(|| Claims::new(grid), || Ledger::new(grid, mode));
     ledger.track_claim_changes();
     let shared = Mutex::new(Shared { ledger, progress });
     let requests = requests_for(cell_run, mode);

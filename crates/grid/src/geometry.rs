@@ -143,6 +143,11 @@ impl Grid {
         &self.canonical
     }
 
+    /// Canonical position of every cell, `u32::MAX` for the incompatible ones.
+    pub(crate) fn positions(&self) -> &[u32] {
+        &self.position
+    }
+
     /// Canonical position of a compatible cell.
     pub fn position(&self, cell: u32) -> Option<usize> {
         let p = self.position[cell as usize];

@@ -158,9 +158,7 @@ impl Ledger {
         Ledger {
             mode,
             canonical: grid.canonical().to_vec(),
-            position: (0..cells as u32)
-                .map(|c| grid.position(c).map_or(u32::MAX, |p| p as u32))
-                .collect(),
+            position: grid.positions().to_vec(),
             flags: (0..cells as u32)
                 .map(|c| if grid.is_compatible(c) { COMPATIBLE } else { 0 })
                 .collect(),
