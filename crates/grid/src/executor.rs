@@ -155,28 +155,22 @@ pub struct Claims {
 
 impl Claims {
     pub fn new(grid: &Grid) -> Self {
+        let unset = || {
+            owned(
+                (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
+                || AtomicBool::new(false),
+            )
+        };
         Claims {
             frontier: AtomicUsize::new(0),
             position: grid.positions().to_vec(),
-            claimed: owned(
-                (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
-                || AtomicBool::new(false),
-            ),
-            told: owned(
-                (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
-                || AtomicBool::new(false),
-            ),
+            claimed: unset(),
+            told: unset(),
             crossed_by: (0..grid.cells())
                 .map(|_| core::array::from_fn(|_| AtomicU32::new(u32::MAX)))
                 .collect(),
-            running: owned(
-                (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
-                || AtomicBool::new(false),
-            ),
-            pending_claimed: owned(
-                (0..grid.cells()).map(|_| AtomicBool::new(false)).collect(),
-                || AtomicBool::new(false),
-            ),
+            running: unset(),
+            pending_claimed: unset(),
             stopped: AtomicU64::new(0),
             abandoned: AtomicU64::new(0),
             abandoned_steps: AtomicU64::new(0),
