@@ -8,8 +8,8 @@
 /// first write to each is a copy-on-write fault, and in a process whose threads run on
 /// several cores the kernel must then flush that page from every other core's TLB: an
 /// interrupt to each, a VM exit on a virtual machine, while the interrupted thread was
-/// stepping orbits. The engine's per-cell arrays took 200–470 of these per 400×400 fast-PSS
-/// run (`/proc/interrupts`, TLB shootdowns), against 6–8 for a run on one thread.
+/// stepping orbits. The engine's per-cell arrays took 40–470 of these per 400×400 fast-PSS
+/// run on 2 threads (`/proc/interrupts`, TLB shootdowns; 9–13 with this), 8 on one thread.
 pub(crate) fn owned<T>(mut v: Vec<T>, make: impl Fn() -> T) -> Vec<T> {
     // 4 kB pages or larger: an element every 4 kB writes to each of them.
     let stride = (4096 / std::mem::size_of::<T>().max(1)).max(1);
