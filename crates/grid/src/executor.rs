@@ -19,7 +19,7 @@ use salient_core::section::on_section;
 use salient_core::section::Crossing;
 use salient_core::{HenonHeiles, TangentMap};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
-use std::sync::Mutex;
+use std::sync::{Mutex, MutexGuard, TryLockError};
 
 /// Orbits advanced together in one batched stepper on the pinned target level, and the unit
 /// in which schedulers size their batches (see [`lanes`] for what runs).
@@ -678,6 +678,8 @@ struct Engine<'a, P> {
     /// Set when a thread of the run panicked: its cell stays marked running, so the others
     /// would wait for it forever; they stop instead, and the panic surfaces.
     failed: AtomicBool,
+    /// Attempts [`Engine::lock_ledger`] makes before it sleeps on the lock.
+    spins: u32,
 }
 
 /// Marks the engine failed if the thread holding it unwinds.
@@ -704,6 +706,39 @@ enum Needed {
     Done,
 }
 
+/// How many times a thread tries the ledger lock before it sleeps on it, when every thread
+/// of the pool has a core. The lock is held for microseconds, while a thread put to sleep on
+/// it waits far longer for its wake-up: 400×400, τ = 0.5, t = 1e4, 2 threads, 1 079 futex
+/// calls and 347 context switches per run with the plain lock, 19 and 45 with this; wall
+/// 0.182 → 0.173 s (medians of 20 alternated runs, 17 of 20 pairs faster). At τ = 0.01 the
+/// lock is taken far less often per second and the run is as fast either way.
+const LEDGER_SPINS: u32 = 20_000;
+
+/// [`LEDGER_SPINS`] when the current pool has a core per thread, else 0: a thread spinning
+/// while the holder waits for its core only delays it.
+fn ledger_spins() -> u32 {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if rayon::current_num_threads() <= cores {
+        LEDGER_SPINS
+    } else {
+        0
+    }
+}
+
+impl<P> Engine<'_, P> {
+    /// The ledger, locked: tried [`Engine::spins`] times before the thread sleeps on it.
+    fn lock_ledger(&self) -> MutexGuard<'_, Shared<P>> {
+        for _ in 0..self.spins {
+            match self.shared.try_lock() {
+                Ok(g) => return g,
+                Err(TryLockError::WouldBlock) => std::hint::spin_loop(),
+                Err(TryLockError::Poisoned(_)) => break,
+            }
+        }
+        self.shared.lock().expect("ledger lock")
+    }
+}
+
 impl<P: FnMut(&Ledger)> Engine<'_, P> {
     /// The first cell the ledger needs that no lane runs and no other orbit is certain or
     /// likely to label, marked running. `dry_since` holds [`Claims::stopped`] as of the last
@@ -719,7 +754,7 @@ impl<P: FnMut(&Ledger)> Engine<'_, P> {
         if *dry_since == Some(stopped) {
             return Needed::NotNow;
         }
-        let g = self.shared.lock().expect("ledger lock");
+        let g = self.lock_ledger();
         let ledger = &g.ledger;
         if ledger.done() {
             return Needed::Done;
@@ -788,7 +823,7 @@ impl<P: FnMut(&Ledger)> Engine<'_, P> {
     /// Hands the finished orbit of `cell`, whose crossings fell in `visited`, to the ledger.
     fn commit(&self, cell: u32, r: &OrbitResult<2>, visited: Vec<u32>) {
         let o = outcome(self.cell_run, self.checkpoints, cell, r, visited);
-        let mut g = self.shared.lock().expect("ledger lock");
+        let mut g = self.lock_ledger();
         let Shared { ledger, progress } = &mut *g;
         ledger.offer(o);
         // Under the lock: the cell is either running or has its outcome in the ledger.
@@ -1062,6 +1097,7 @@ pub fn run_embedded_forecast(
         shared: &shared,
         forecast: forecast.filter(|f| f.fits(grid.cells()) && takes_forecast(cell_run, mode)),
         failed: AtomicBool::new(false),
+        spins: ledger_spins(),
     };
     let Method::TangentMap(scheme) = &cell_run.run.method else {
         rayon::broadcast(|_| {
