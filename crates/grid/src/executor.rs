@@ -708,9 +708,9 @@ enum Needed {
 
 /// How many times a thread tries the ledger lock before it sleeps on it, when every thread
 /// of the pool has a core. The lock is held for microseconds, while a thread put to sleep on
-/// it waits far longer for its wake-up: 400×400, τ = 0.5, t = 1e4, 2 threads, 1 079 futex
-/// calls and 347 context switches per run with the plain lock, 19 and 45 with this; wall
-/// 0.182 → 0.173 s (medians of 20 alternated runs, 17 of 20 pairs faster). At τ = 0.01 the
+/// it waits far longer for its wake-up: 400×400, τ = 0.5, t = 1e4, 2 threads, 1 100–1 200
+/// futex calls and 350–380 context switches per run with the plain lock, 19 and 45 with this;
+/// wall 0.182 → 0.173 s (medians of 20 alternated runs, 17 of 20 pairs faster). At τ = 0.01 the
 /// lock is taken far less often per second and the run is as fast either way.
 const LEDGER_SPINS: u32 = 20_000;
 
