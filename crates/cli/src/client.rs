@@ -158,7 +158,9 @@ pub fn submit(args: SubmitArgs) -> CliResult<()> {
     runtime_for(1)?.block_on(async {
         let mut client = connect(&args.conn).await?;
         let reply = client
-            .submit(v1::SubmitRequest { spec_json: json })
+            .submit(v1::SubmitRequest {
+                spec_json: json.into_bytes().into(),
+            })
             .await
             .map_err(|e| rpc_error("submit", e))?
             .into_inner();

@@ -39,6 +39,10 @@ pub struct CoordinatorArgs {
     /// Refuse submitted specs whose grid holds more cells than this.
     #[arg(long, default_value_t = salient_grid::spec::MAX_CELLS)]
     max_cells: usize,
+    /// Refuse submitted specs whose cells × runs exceed this: the coordinator keeps every
+    /// run's ledger in memory (about 25 bytes per cell and run).
+    #[arg(long, default_value_t = salient_coordinator::scheduler::MAX_CELL_RUNS)]
+    max_cell_runs: usize,
     /// Write the bound address to this file once listening (useful with port 0).
     #[arg(long)]
     address_file: Option<PathBuf>,
@@ -132,6 +136,7 @@ pub fn coordinator(args: CoordinatorArgs) -> CliResult<()> {
             poll: Duration::from_millis(200),
             lease_cells_per_thread: args.lease_cells_per_thread,
             max_cells: args.max_cells,
+            max_cell_runs: args.max_cell_runs,
         },
         progress_every: Duration::from_secs_f64(progress),
     };

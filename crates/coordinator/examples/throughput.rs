@@ -146,6 +146,7 @@ fn main() {
                         job: r.job,
                         run: r.run,
                         next: r.next,
+                        own: false,
                     }),
                 }
             }

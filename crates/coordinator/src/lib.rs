@@ -232,9 +232,9 @@ impl ClientService for Handle {
         &self,
         r: Request<v1::SubmitRequest>,
     ) -> Result<Response<v1::SubmitReply>, Status> {
-        let (job, warnings) = self
-            .ask(|tx| Event::Submit(r.into_inner().spec_json, tx))
-            .await?;
+        let text = String::from_utf8(r.into_inner().spec_json.to_vec())
+            .map_err(|e| Status::invalid_argument(format!("spec_json is not UTF-8 text: {e}")))?;
+        let (job, warnings) = self.ask(|tx| Event::Submit(text, tx)).await?;
         Ok(Response::new(v1::SubmitReply { job, warnings }))
     }
     async fn status(

@@ -30,6 +30,12 @@ const WINDOW_TILES_MIN: usize = 64;
 /// Relayed outcomes one poll's reply carries at most (bytes), well below the message limit.
 const RELAY_BYTES: usize = 1 << 20;
 
+/// Leases of a run answered in a row without a new outcome while its resolved count stays put
+/// that make it stalled (see [`Stall`]). Speculative leases far from the frontier come back
+/// empty now and then; dozens in a row with nothing resolving are a worker that cannot settle
+/// what it is given.
+const STALL_LEASES: u32 = 32;
+
 /// Timing of leases and polls.
 #[derive(Clone, Copy, Debug)]
 pub struct Config {
@@ -45,7 +51,14 @@ pub struct Config {
     pub lease_cells_per_thread: usize,
     /// Largest grid (cells in all) a submitted spec may ask for.
     pub max_cells: usize,
+    /// Largest cells × runs a submitted spec may ask for: every run of a job keeps its ledger
+    /// in memory.
+    pub max_cell_runs: usize,
 }
+
+/// Default of [`Config::max_cell_runs`]: a 4000×4000 grid twice, or the paper's 400×400 Table 2
+/// (24 runs) 80 times over; about 0.8 GB of ledgers at most.
+pub const MAX_CELL_RUNS: usize = 32_000_000;
 
 impl Default for Config {
     fn default() -> Self {
@@ -54,6 +67,7 @@ impl Default for Config {
             poll: Duration::from_millis(200),
             lease_cells_per_thread: 2 * salient_grid::executor::LANES,
             max_cells: spec::MAX_CELLS,
+            max_cell_runs: MAX_CELL_RUNS,
         }
     }
 }
@@ -104,9 +118,42 @@ struct Tile {
     drained_at: Option<u64>,
 }
 
+/// The progress guarantee of a run: leases finished since its resolved count last moved that
+/// brought no new outcome, and who returned them. Once [`STALL_LEASES`] have, the run is
+/// stalled: a warning names the tiles and workers, and each of those tiles goes to a worker
+/// that has not returned it empty, while there is one. Any movement of the resolved count
+/// ends the stall.
+#[derive(Default)]
+struct Stall {
+    resolved: usize,
+    empty_leases: u32,
+    /// Tile → workers that returned it empty in this stretch.
+    involved: BTreeMap<u32, BTreeSet<String>>,
+}
+
+impl Stall {
+    fn is_stalled(&self) -> bool {
+        self.empty_leases >= STALL_LEASES
+    }
+
+    /// Whether `worker` should leave tile `t` to one of `others` (the registered workers).
+    fn shuns<'a>(
+        &self,
+        t: u32,
+        worker: &str,
+        mut others: impl Iterator<Item = &'a String>,
+    ) -> bool {
+        self.is_stalled()
+            && self.involved.get(&t).is_some_and(|ws| {
+                ws.contains(worker) && others.any(|o| o != worker && !ws.contains(o))
+            })
+    }
+}
+
 struct Run {
     grid: Grid,
     ledger: Ledger,
+    stall: Stall,
     /// Fast PSS: every outcome received, with the serial of the worker that sent it
     /// (`u64::MAX`: loaded from the store), relayed to the other workers of the run
     /// ([`v1::Relay`]). Emptied when the run is done.
@@ -179,6 +226,7 @@ impl Run {
         let cell_run = spec.cell_run(index);
         Run {
             ledger: Ledger::new(&grid, spec.grid.mode),
+            stall: Stall::default(),
             relay: Vec::new(),
             stored: vec![false; grid.cells()],
             checkpoints: cell_run.checkpoint_steps().len(),
@@ -207,6 +255,54 @@ impl Run {
             .tile_compatible_cells(t)
             .filter(|&c| self.ledger.wants(c))
             .collect()
+    }
+
+    /// Watches progress as a lease of tile `key.2` finishes (`brought`: it carried a new
+    /// outcome) and warns once when the run stalls, naming workers by `name_of`.
+    fn note_finished(
+        &mut self,
+        key: TileKey,
+        worker: &str,
+        brought: bool,
+        name_of: impl Fn(&str) -> String,
+    ) {
+        let resolved = self.ledger.resolved();
+        let stall = &mut self.stall;
+        if resolved != stall.resolved || brought {
+            if stall.is_stalled() {
+                tracing::info!(job = key.0, run = key.1, resolved, "run progresses again");
+            }
+            *stall = Stall {
+                resolved,
+                ..Stall::default()
+            };
+            return;
+        }
+        stall.empty_leases += 1;
+        stall
+            .involved
+            .entry(key.2)
+            .or_default()
+            .insert(worker.to_string());
+        if stall.empty_leases == STALL_LEASES {
+            let tiles: Vec<u32> = stall.involved.keys().copied().collect();
+            let workers: BTreeSet<String> = stall
+                .involved
+                .values()
+                .flatten()
+                .map(|w| format!("{w} ({})", name_of(w)))
+                .collect();
+            tracing::warn!(
+                job = key.0,
+                run = key.1,
+                resolved,
+                leases = stall.empty_leases,
+                ?tiles,
+                ?workers,
+                "run makes no progress: its leases come back without outcomes; \
+                 offering its tiles to other workers"
+            );
+        }
     }
 
     fn elapsed(&self) -> f64 {
@@ -340,6 +436,16 @@ impl Scheduler {
     pub fn submit(&mut self, spec_json: &str) -> Result<(u64, Vec<String>), Status> {
         let spec = spec::parse_capped(spec_json, true, self.cfg.max_cells)
             .map_err(|e| Status::invalid_argument(e.0))?;
+        let cells = spec.grid.n_q2 * spec.grid.n_p2;
+        let cell_runs = cells.saturating_mul(spec.runs.len());
+        if cell_runs > self.cfg.max_cell_runs {
+            return Err(Status::invalid_argument(format!(
+                "grid.cells × runs must be at most {} on this coordinator (got {cells} cells × {} \
+                 runs = {cell_runs}; split the sweep into several jobs, or raise --max-cell-runs)",
+                self.cfg.max_cell_runs,
+                spec.runs.len()
+            )));
+        }
         let id = self
             .store
             .insert_job(&spec.name, spec_json, now_ms())
@@ -519,6 +625,7 @@ impl Scheduler {
             }
             // Only outcomes for cells without one change anything; repeats are answered OK.
             let mut seen = HashSet::new();
+            let mut brought = false;
             let fresh: Vec<(&v1::Outcome, Bytes, salient_grid::Outcome)> = r
                 .outcomes
                 .iter()
@@ -527,6 +634,7 @@ impl Scheduler {
                 .map(|(o, checked)| (o, Bytes::from(o.encode_to_vec()), checked))
                 .collect();
             if !fresh.is_empty() {
+                brought = true;
                 self.store
                     .write(Write::Report {
                         job: lease.job,
@@ -550,6 +658,12 @@ impl Scheduler {
             }
             if r.finished && tile.lease.as_ref().is_some_and(|l| l.worker == worker) {
                 tile.lease = None;
+                if run.ledger.mode() == salient_grid::Mode::FastPss {
+                    let workers = &self.workers;
+                    run.note_finished(key, worker, brought, |id| {
+                        workers.get(id).map_or_else(String::new, |w| w.name.clone())
+                    });
+                }
                 // Counted once: a repeat of the finishing report finds the lease gone.
                 if r.abandoned_orbits > 0 {
                     run.extra_dropped_orbits =
@@ -629,10 +743,12 @@ impl Scheduler {
         Ok(())
     }
 
-    /// The next tile with cells that need an orbit, FIFO over jobs and in order over runs and
-    /// tiles (from each run's frontier on, a bounded window), and those cells.
-    fn next_tile(&mut self) -> Option<(TileKey, Vec<u32>)> {
+    /// The next tile with cells that need an orbit for `worker`, FIFO over jobs and in order
+    /// over runs and tiles (from each run's frontier on, a bounded window), and those cells.
+    /// A stalled run's tiles that this worker returned empty go to others while there are.
+    fn next_tile(&mut self, worker: &str) -> Option<(TileKey, Vec<u32>)> {
         let workers = self.workers.len();
+        let registered = &self.workers;
         for job in self.jobs.values_mut() {
             if job.state.is_terminal() {
                 continue;
@@ -656,7 +772,10 @@ impl Scheduler {
                 let reopenings = run.ledger.reopenings();
                 for t in first..last {
                     let tile = &run.tiles[t];
-                    if tile.lease.is_some() || tile.drained_at == Some(reopenings) {
+                    if tile.lease.is_some()
+                        || tile.drained_at == Some(reopenings)
+                        || run.stall.shuns(t as u32, worker, registered.keys())
+                    {
                         continue;
                     }
                     let cells = run.wanted(t);
@@ -794,8 +913,9 @@ impl Scheduler {
         revoked
     }
 
-    /// Outcomes of the fast-PSS runs the worker holds leases of that other workers reported,
-    /// from the marks the worker sent on, up to [`RELAY_BYTES`].
+    /// Outcomes of the fast-PSS runs the worker holds leases of that other workers reported
+    /// (its own too where its mark asks for them), from the marks the worker sent on, up to
+    /// [`RELAY_BYTES`].
     fn relays(&self, worker: &str, marks: &[v1::RelayMark]) -> Vec<v1::Relay> {
         let Some(w) = self.workers.get(worker) else {
             return Vec::new();
@@ -811,10 +931,10 @@ impl Scheduler {
             else {
                 continue;
             };
-            let mark = marks
+            let (mark, own) = marks
                 .iter()
                 .find(|m| (m.job, m.run) == key)
-                .map_or(0, |m| m.next);
+                .map_or((0, false), |m| (m.next, m.own));
             // A mark past the end is not this process's (a worker forgets its marks when it
             // registers again): from the start.
             let mut next = usize::try_from(mark)
@@ -825,7 +945,7 @@ impl Scheduler {
             while next < run.relay.len() && bytes < RELAY_BYTES {
                 let (from, o) = &run.relay[next];
                 next += 1;
-                if *from != w.serial {
+                if *from != w.serial || own {
                     bytes += o.len();
                     outcomes.push(o.clone());
                 }
@@ -891,7 +1011,7 @@ impl Scheduler {
         if !req.draining {
             let threads = self.workers.get(worker).map_or(1, |w| w.threads as usize);
             for _ in 0..req.free_slots.min(8) {
-                let Some((key, mut cells)) = self.next_tile() else {
+                let Some((key, mut cells)) = self.next_tile(worker) else {
                     break;
                 };
                 // Fast PSS: lease a tile's wanted cells a worker's batch at a time, each lease

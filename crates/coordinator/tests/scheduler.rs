@@ -231,7 +231,8 @@ fn lease_one(s: &mut Scheduler, w: &str) -> v1::Lease {
 }
 
 /// Fast PSS: a worker gets the outcomes other workers reported in the run it holds leases
-/// of, never its own, continuing from the mark it sends, so a reply it lost comes again.
+/// of, its own only when its mark asks for them (a ledger made afresh), continuing from the
+/// mark it sends, so a reply it lost comes again.
 #[test]
 fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     let json = spec_json("fast-pss", r#""tm-sbab2c""#);
@@ -240,18 +241,27 @@ fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     let (a, b) = (register(&mut s), register(&mut s));
     let lease_a = lease_one(&mut s, &a);
     let lease_b = lease_one(&mut s, &b);
+    let poll_marked =
+        |s: &mut Scheduler, w: &str, held: &v1::Lease, reports, next: Option<u64>, own| {
+            s.poll(&v1::PollRequest {
+                worker_id: w.into(),
+                held: vec![held.lease.unwrap()],
+                reports,
+                relayed: next
+                    .map(|next| v1::RelayMark {
+                        job,
+                        run: 0,
+                        next,
+                        own,
+                    })
+                    .into_iter()
+                    .collect(),
+                ..Default::default()
+            })
+            .unwrap()
+        };
     let poll = |s: &mut Scheduler, w: &str, held: &v1::Lease, reports, next: Option<u64>| {
-        s.poll(&v1::PollRequest {
-            worker_id: w.into(),
-            held: vec![held.lease.unwrap()],
-            reports,
-            relayed: next
-                .map(|next| v1::RelayMark { job, run: 0, next })
-                .into_iter()
-                .collect(),
-            ..Default::default()
-        })
-        .unwrap()
+        poll_marked(s, w, held, reports, next, false)
     };
     let relayed = |r: &v1::PollReply| -> Vec<(Vec<u32>, u64)> {
         r.relays
@@ -297,7 +307,13 @@ fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     let total = n + cells_b.len() as u64;
     assert_eq!(
         relayed(&poll(&mut s, &a, &lease_a, vec![], Some(0))),
-        vec![(cells_b, total)]
+        vec![(cells_b.clone(), total)]
+    );
+    // A ledger made afresh asks for its own as well.
+    let all: Vec<u32> = cells_a.iter().chain(&cells_b).copied().collect();
+    assert_eq!(
+        relayed(&poll_marked(&mut s, &a, &lease_a, vec![], Some(0), true)),
+        vec![(all, total)]
     );
 }
 
@@ -501,12 +517,47 @@ fn bad_specs_from_the_wire_are_refused_with_the_field_named() {
         (spec_json("fast-pss", r#""tm-nope""#), "sweep.method"),
         (spec_json("sideways", r#""tm-sbab2c""#), "grid.mode"),
         ("{".to_string(), "JSON"),
+        (
+            spec_json("full", r#""tm-sbab2c""#).replace(r#""t""#, r#""..""#),
+            "name",
+        ),
+        (
+            spec_json("full", r#""tm-sbab2c""#).replace(
+                r#""name": "t""#,
+                &format!(r#""name": "{}""#, "y".repeat(65_536)),
+            ),
+            "name",
+        ),
     ] {
         let e = s.submit(&json).unwrap_err();
         assert_eq!(e.code(), Code::InvalidArgument);
         assert!(e.message().contains(field), "{}", e.message());
+        assert!(
+            e.message().len() < 1000,
+            "the message quotes a long input in part"
+        );
     }
     assert!(s.status(None).unwrap().jobs.is_empty());
+}
+
+/// Cells × runs are capped per job: every run keeps its ledger in the coordinator's memory.
+#[test]
+fn a_job_over_the_cells_times_runs_cap_is_refused() {
+    let mut s = Scheduler::new(
+        Store::open_in_memory().unwrap(),
+        Config {
+            max_cell_runs: 14 * 12,
+            ..config()
+        },
+    )
+    .unwrap();
+    let one = spec_json("full", r#""tm-sbab2c""#);
+    s.submit(&one).unwrap();
+    let two = spec_json("full", r#""tm-sbab2c", "tm-sbab2""#);
+    let e = s.submit(&two).unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("--max-cell-runs"), "{}", e.message());
+    assert_eq!(s.status(None).unwrap().jobs.len(), 1);
 }
 
 /// A poll's reply goes out before its group is committed, so the answers to the reports it
@@ -582,4 +633,74 @@ fn a_restarted_scheduler_never_issues_an_attempt_number_twice() {
         })
         .unwrap();
     assert_eq!(stale.revoked.len(), 1);
+}
+
+/// The progress guarantee: a worker that returns the same fast-PSS tile without an outcome
+/// lease after lease (a worker that cannot settle it) stalls the run; then the tile goes to
+/// another worker, and back to the first only when it is the one left.
+#[test]
+fn a_tile_returned_empty_again_and_again_goes_to_another_worker() {
+    let json = spec_json("fast-pss", r#""tm-sbab2c""#);
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    let (job, _) = s.submit(&json).unwrap();
+    let (a, b) = (register(&mut s), register(&mut s));
+    let empty = |lease: &v1::Lease| v1::ReportRequest {
+        worker_id: a.clone(),
+        reports: vec![v1::TileReport {
+            lease: lease.lease,
+            finished: true,
+            ..Default::default()
+        }],
+    };
+    let first = lease_one(&mut s, &a);
+    let stuck = first.lease.unwrap().key();
+    let mut lease = first;
+    // Under the threshold the worker keeps getting the tile back (it is the frontier's).
+    for _ in 0..31 {
+        s.report(&empty(&lease)).unwrap();
+        lease = lease_one(&mut s, &a);
+        assert_eq!(lease.lease.unwrap().key(), stuck);
+    }
+    s.report(&empty(&lease)).unwrap();
+    let other = lease_one(&mut s, &a);
+    assert_ne!(
+        other.lease.unwrap().key(),
+        stuck,
+        "the stalled tile is left to others"
+    );
+    let taken = lease_one(&mut s, &b);
+    assert_eq!(taken.lease.unwrap().key(), stuck, "another worker gets it");
+    // Its outcome moves the run on: the stall ends.
+    s.report(&v1::ReportRequest {
+        worker_id: b.clone(),
+        reports: vec![work(&taken, &HashSet::new())],
+    })
+    .unwrap();
+    let st = s.status(Some(job)).unwrap().jobs.remove(0);
+    assert!(st.runs[0].resolved > 0);
+}
+
+/// With one worker left the stalled tile still goes to it: leaving it unleased would stop the
+/// run for good.
+#[test]
+fn a_stalled_tile_goes_back_to_the_only_worker() {
+    let json = spec_json("fast-pss", r#""tm-sbab2c""#);
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    s.submit(&json).unwrap();
+    let a = register(&mut s);
+    let mut lease = lease_one(&mut s, &a);
+    let stuck = lease.lease.unwrap().key();
+    for _ in 0..40 {
+        s.report(&v1::ReportRequest {
+            worker_id: a.clone(),
+            reports: vec![v1::TileReport {
+                lease: lease.lease,
+                finished: true,
+                ..Default::default()
+            }],
+        })
+        .unwrap();
+        lease = lease_one(&mut s, &a);
+        assert_eq!(lease.lease.unwrap().key(), stuck);
+    }
 }

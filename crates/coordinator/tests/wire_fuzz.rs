@@ -136,8 +136,11 @@ proptest! {
         if let Ok(r) = v1::RegisterRequest::decode(bytes.as_slice()) {
             let _ = s.register(&r);
         }
-        if let Ok(r) = v1::SubmitRequest::decode(bytes.as_slice()) {
-            let out = s.submit(&r.spec_json).map(|_| ());
+        if let Some(text) = v1::SubmitRequest::decode(bytes.as_slice())
+            .ok()
+            .and_then(|r| String::from_utf8(r.spec_json.to_vec()).ok())
+        {
+            let out = s.submit(&text).map(|_| ());
             refused(out, &s);
         }
         if let Ok(r) = v1::StatusRequest::decode(bytes.as_slice()) {

@@ -551,6 +551,12 @@ pub enum Take {
     /// An entry: the cell in the low 32 bits, the rest the source's own (the same cell may
     /// come again, in another lease, while its earlier orbit still runs).
     Cell(u64),
+    /// An entry the judge deferred, handed out because nothing on this side can settle it (no
+    /// orbit runs and none other waits). Its orbit is abandoned only once its cell is claimed
+    /// for certain, never on a probable label: the source asked for it knowing more than this
+    /// side may (a worker's ledger can lack outcomes its coordinator has), and a probable label
+    /// that never comes true would abandon it at every try.
+    Insist(u64),
     /// Nothing to integrate now; ask again.
     Wait,
     /// Nothing more will come.
@@ -582,6 +588,7 @@ pub fn integrate_stream(
             local,
             claims: local.claims(),
             source,
+            insisted: Vec::new(),
         };
         drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
     });
@@ -595,6 +602,8 @@ struct StreamFeed<'a, S> {
     local: &'a LocalLedger,
     claims: &'a Claims,
     source: &'a S,
+    /// Entries of this driver's lanes handed out as [`Take::Insist`].
+    insisted: Vec<usize>,
 }
 
 impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
@@ -613,8 +622,12 @@ impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
                 Verdict::Go
             }
         };
-        match self.source.take(all_idle, &judge) {
-            Take::Cell(entry) => {
+        let take = self.source.take(all_idle, &judge);
+        if let Take::Insist(entry) = take {
+            self.insisted.push(entry as usize);
+        }
+        match take {
+            Take::Cell(entry) | Take::Insist(entry) => {
                 let cell = entry as u32;
                 claims.set_running(cell, true);
                 let (q, p) = initial_point(grid, cell);
@@ -627,6 +640,7 @@ impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
     fn finished(&mut self, id: usize, r: OrbitResult<2>) {
         let cell = id as u32;
         self.claims.set_running(cell, false);
+        self.insisted.retain(|&e| e != id);
         let visited = crossed_cells(self.grid, &r.crossings);
         let o = outcome(self.cell_run, self.checkpoints, cell, &r, visited);
         self.local.offer(o.clone());
@@ -649,11 +663,13 @@ impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
     }
     fn cancelled(&mut self, id: usize) -> bool {
         let cell = id as u32;
-        self.claims.is_claimed(cell) || self.claims.probably_labelled(self.grid, cell)
+        self.claims.is_claimed(cell)
+            || (!self.insisted.contains(&id) && self.claims.probably_labelled(self.grid, cell))
     }
     fn abandoned(&mut self, id: usize, steps: u64) {
         let cell = id as u32;
         self.claims.set_running(cell, false);
+        self.insisted.retain(|&e| e != id);
         self.claims.record_abandoned(steps);
         self.source.ended(id as u64, None, steps);
     }

@@ -22,6 +22,10 @@ pub const MAX_CELLS: usize = 16_000_000;
 const MAX_STEPS: f64 = 1e12;
 /// Cells per axis.
 const MAX_AXIS: usize = 4000;
+/// Characters of a job name: it names the output folder and shows in every status table.
+pub const MAX_NAME_CHARS: usize = 128;
+/// Runs (members of the sweep) in one job.
+pub const MAX_RUNS: usize = 1024;
 /// Tiles per axis when the spec gives none (clipped to the cells).
 const DEFAULT_TILE: usize = 20;
 
@@ -575,16 +579,33 @@ pub fn default_bounds(energy: f64) -> ((f64, f64), (f64, f64)) {
     ((bisect(0.0, -2.0), upper), (-p, p))
 }
 
+/// A job name names a folder of its own: 1 to [`MAX_NAME_CHARS`] characters, ASCII letters,
+/// digits, `-`, `_`, `.` and `+`, not starting with `.` (so never `.` or `..`, nor hidden) or
+/// `-` (never read as an option).
+fn check_name(name: &str) -> SpecResult<()> {
+    let allowed = |c: char| c.is_ascii_alphanumeric() || "-_.+".contains(c);
+    let ok = (1..=MAX_NAME_CHARS).contains(&name.chars().count())
+        && name.chars().all(allowed)
+        && !name.starts_with(['.', '-']);
+    if ok {
+        return Ok(());
+    }
+    // The name as given, cut short: it may be megabytes.
+    let shown: String = name.chars().take(40).collect();
+    let more = if name.chars().count() > 40 { "…" } else { "" };
+    Err(usage(format!(
+        "name must be 1 to {MAX_NAME_CHARS} characters from A-Z a-z 0-9 - _ . + (a folder is \
+         named after it), not starting with . or - (got {shown:?}{more}, {} characters)",
+        name.chars().count()
+    )))
+}
+
 fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
     let source = serde_json::to_value(&raw).expect("a read spec holds only finite numbers");
     let mut warnings = Vec::new();
 
     let name = raw.name.unwrap_or_else(|| "salient".into());
-    if name.trim().is_empty() || name.contains(['/', '\\']) || name.contains(char::is_control) {
-        return Err(usage(format!(
-            "name must be non-empty, without path separators or control characters (got {name:?})"
-        )));
-    }
+    check_name(&name)?;
     if raw.system.kind != "henon-heiles" {
         return Err(usage(format!(
             "system.kind must be \"henon-heiles\" (got {:?})",
@@ -754,6 +775,22 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
         energy_drift,
     };
 
+    // Counted before the sweep is built: lists of a few thousand values each would make
+    // billions of runs.
+    let per_pair = methods
+        .iter()
+        .map(|m| if m.is_adaptive() { deltas.len() } else { 1 })
+        .fold(0usize, usize::saturating_add);
+    let n_runs = s
+        .tau
+        .len()
+        .saturating_mul(s.t_final.len())
+        .saturating_mul(per_pair);
+    if n_runs > MAX_RUNS {
+        return Err(usage(format!(
+            "sweep must make at most {MAX_RUNS} runs (method × tau × t_final × delta; got {n_runs})"
+        )));
+    }
     let mut runs = Vec::new();
     for &tau in &s.tau {
         for &t_final in &s.t_final {
@@ -1219,6 +1256,12 @@ t_final = [1e3]
             ),
             ("name = \"t\"", "name = \"\"", "name"),
             ("name = \"t\"", "name = \"a/b\"", "name"),
+            ("name = \"t\"", "name = \"..\"", "name"),
+            ("name = \"t\"", "name = \".\"", "name"),
+            ("name = \"t\"", "name = \".hidden\"", "name"),
+            ("name = \"t\"", "name = \"-rf\"", "name"),
+            ("name = \"t\"", "name = \"a b\"", "name"),
+            ("name = \"t\"", "name = \"a\\u0000b\"", "name"),
             // Syntax errors name the line.
             ("energy = 0.125", "energy = 0.125\nenergy = 0.1", "energy"),
             ("energy = 0.125", "energy = ", "energy"),
@@ -1305,5 +1348,35 @@ t_final = [1e3]
             true,
         ));
         assert!(msg.contains("'z'"), "{msg}");
+    }
+
+    #[test]
+    fn names_are_short_file_names_and_sweeps_are_capped() {
+        let named = |name: &str| GOOD.replacen("name = \"t\"", &format!("name = \"{name}\""), 1);
+        for ok in ["t", "j200b", "run-1.v2_a+b", &"n".repeat(MAX_NAME_CHARS)] {
+            assert_eq!(parse(&named(ok), false).unwrap().name, ok);
+        }
+        // A long name is refused, and the message quotes only its start.
+        let msg = usage_message(parse(&named(&"y".repeat(65_536)), false));
+        assert!(msg.contains("65536 characters") && msg.len() < 400, "{msg}");
+        assert!(!usage_message(parse(&named(&"n".repeat(MAX_NAME_CHARS + 1)), false)).is_empty());
+        // Runs are counted before they are made: 2000 × 2000 values would be 4e6 runs.
+        let list = |n: usize, scale: f64| {
+            let v: Vec<String> = (1..=n).map(|k| format!("{:?}", k as f64 * scale)).collect();
+            format!("[{}]", v.join(", "))
+        };
+        let big = GOOD
+            .replacen(
+                "tau = [0.5, 0.05]",
+                &format!("tau = {}", list(2000, 1e-4)),
+                1,
+            )
+            .replacen(
+                "t_final = [1e3]",
+                &format!("t_final = {}", list(2000, 1e3)),
+                1,
+            );
+        let msg = usage_message(parse(&big, false));
+        assert!(msg.contains("at most 1024 runs"), "{msg}");
     }
 }

@@ -209,6 +209,19 @@ fn a_forecast_changes_the_work_and_never_the_labels() {
 struct ListSource {
     queue: std::sync::Mutex<std::collections::VecDeque<u64>>,
     ended: std::sync::Mutex<Vec<(u32, Option<salient_grid::Outcome>)>>,
+    /// Hands out a deferred cell as [`Take::Insist`] (a worker's source does), or as a plain
+    /// [`Take::Cell`].
+    insist: bool,
+}
+
+impl ListSource {
+    fn new(entries: impl IntoIterator<Item = u64>, insist: bool) -> Self {
+        ListSource {
+            queue: std::sync::Mutex::new(entries.into_iter().collect()),
+            ended: std::sync::Mutex::new(Vec::new()),
+            insist,
+        }
+    }
 }
 
 impl salient_grid::executor::CellSource for ListSource {
@@ -235,6 +248,7 @@ impl salient_grid::executor::CellSource for ListSource {
         }
         // With every lane idle nothing here can settle the deferred cells: the first goes.
         match queue.pop_front() {
+            Some(e) if all_idle && self.insist => Take::Insist(e),
             Some(e) if all_idle => Take::Cell(e),
             Some(e) => {
                 queue.push_front(e);
@@ -274,17 +288,14 @@ fn worker_streams_skip_claimed_and_crossed_cells_without_changing_outcomes() {
             for &c in &claimed {
                 local.claims().claim(c);
             }
-            let source = ListSource {
-                // Entries carry a serial above the cell, as a worker's do.
-                queue: std::sync::Mutex::new(
-                    cells
-                        .iter()
-                        .enumerate()
-                        .map(|(i, &c)| ((i as u64 + 1) << 32) | c as u64)
-                        .collect(),
-                ),
-                ended: std::sync::Mutex::new(Vec::new()),
-            };
+            // Entries carry a serial above the cell, as a worker's do.
+            let source = ListSource::new(
+                cells
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &c)| ((i as u64 + 1) << 32) | c as u64),
+                true,
+            );
             pool(threads).install(|| integrate_stream(&grid, &run, Mode::FastPss, &local, &source));
             let ended = source.ended.into_inner().unwrap();
             let mut seen: Vec<u32> = ended.iter().map(|(c, _)| *c).collect();
@@ -319,6 +330,53 @@ fn worker_streams_skip_claimed_and_crossed_cells_without_changing_outcomes() {
                     cells.len()
                 );
             }
+        }
+    }
+}
+
+/// A cell that a pending outcome of the stream's own ledger crossed is only probably labelled:
+/// that outcome may be dropped by an earlier one the ledger has not seen (a worker's ledger
+/// can lack outcomes its coordinator has). Handed out insistently — nothing else runs or waits
+/// — its orbit runs to the end and gives the plain outcome; handed out as a plain cell it is
+/// abandoned on the same guess, which at every lease of it was a livelock.
+#[test]
+fn a_cell_insisted_on_is_not_abandoned_on_a_probable_label() {
+    use salient_grid::executor::{integrate_stream, LocalLedger};
+    let grid = paper_grid(100);
+    let run = tm("sbab2c", 0.5, 2e3);
+    let cells: Vec<u32> = grid.canonical()[..64].to_vec();
+    let plain = pool(1).install(|| integrate_cells(&grid, &run, Mode::FastPss, &cells));
+    let pos = |c: u32| grid.position(c).unwrap();
+    // An outcome after the first cell (left unsettled, so it stays pending) that crossed a
+    // later cell.
+    let (claimer, crossed) = plain
+        .iter()
+        .filter(|o| pos(o.cell) > 0)
+        .find_map(|o| {
+            o.visited
+                .iter()
+                .find(|&&v| grid.position(v).is_some_and(|p| p > pos(o.cell)))
+                .map(|&v| (o.clone(), v))
+        })
+        .expect("a regular orbit crosses a later cell");
+    let want = integrate_cells(&grid, &run, Mode::FastPss, &[crossed]).remove(0);
+    for insist in [true, false] {
+        let local = LocalLedger::new(&grid, Mode::FastPss);
+        local.offer(claimer.clone());
+        let source = ListSource::new([(1u64 << 32) | crossed as u64], insist);
+        pool(1).install(|| integrate_stream(&grid, &run, Mode::FastPss, &local, &source));
+        let ended = source.ended.into_inner().unwrap();
+        assert_eq!(ended.len(), 1);
+        match (insist, &ended[0].1) {
+            (true, Some(o)) => {
+                assert_eq!(
+                    (o.cell, o.steps, o.class),
+                    (want.cell, want.steps, want.class)
+                );
+                assert_eq!(o.sali.to_bits(), want.sali.to_bits());
+            }
+            (false, None) => {} // abandoned on the guess
+            (insist, got) => panic!("insist {insist}: {got:?}"),
         }
     }
 }

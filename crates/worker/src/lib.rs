@@ -154,6 +154,9 @@ struct Signals {
     skips: HashMap<LeaseKey, HashSet<u32>>,
     revoked: HashSet<LeaseKey>,
     ledgers: HashMap<(u64, u32), RunLedger>,
+    /// Runs this worker has made a ledger of: one made again (the compute side keeps few)
+    /// asks for its own outcomes to be relayed too.
+    made: HashSet<(u64, u32)>,
     /// Outcomes of leases still running, for the next poll: a report that woke the network
     /// side for every outcome made a poll (and a store commit) of each, and the coordinator
     /// shares the cores.
@@ -167,14 +170,37 @@ type LeaseKey = (u64, u32, u32, u32);
 struct RunLedger {
     local: Arc<LocalLedger>,
     relayed: u64,
+    /// The relay must bring this worker's own outcomes as well: the ledger was made after an
+    /// earlier one of the same run was dropped, with the outcomes this worker had offered it.
+    /// Without them the ledger's commits stop at the first such cell, its pending outcomes
+    /// keep claiming cells the coordinator still leases, and those cells are abandoned at
+    /// every lease.
+    own: bool,
 }
 
-impl RunLedger {
-    fn new(spec: &JobSpec, grid: &Grid) -> Self {
-        RunLedger {
-            local: Arc::new(LocalLedger::new(grid, spec.grid.mode)),
-            relayed: 0,
-        }
+impl Signals {
+    /// The run's ledger, made (from `grid`, built only then) if there is none.
+    fn ledger(
+        &mut self,
+        key: (u64, u32),
+        spec: &JobSpec,
+        grid: impl FnOnce() -> Grid,
+    ) -> &mut RunLedger {
+        let again = !self.made.insert(key);
+        self.ledgers.entry(key).or_insert_with(|| {
+            if again {
+                tracing::debug!(
+                    job = key.0,
+                    run = key.1,
+                    "ledger made again; asking for this worker's own outcomes too"
+                );
+            }
+            RunLedger {
+                local: Arc::new(LocalLedger::new(&grid(), spec.grid.mode)),
+                relayed: 0,
+                own: again,
+            }
+        })
     }
 }
 
@@ -232,9 +258,7 @@ fn compute_thread(
             let local = signals
                 .lock()
                 .expect("signals")
-                .ledgers
-                .entry((key.0, key.1))
-                .or_insert_with(|| RunLedger::new(&w.spec, &grid))
+                .ledger((key.0, key.1), &w.spec, || grid.clone())
                 .local
                 .clone();
             (w.spec.clone(), grid, w.spec.cell_run(key.1 as usize), local)
@@ -466,13 +490,17 @@ impl CellSource for LeaseSource {
             if !st.closed {
                 self.waiting.store(st.queue.len(), Ordering::Relaxed);
             }
-            if let Some(entry) = pick {
+            if let Some((entry, forced)) = pick {
                 st.running += 1;
                 drop(st);
                 for e in dropped {
                     self.end_entry(e, None, 0);
                 }
-                return Take::Cell(entry);
+                return if forced {
+                    Take::Insist(entry)
+                } else {
+                    Take::Cell(entry)
+                };
             }
             if !dropped.is_empty() {
                 drop(st);
@@ -520,14 +548,14 @@ impl LeaseSource {
     }
 
     /// The first waiting entry that `judge` lets go (or, with `force`, the first it defers,
-    /// when none goes), taken out of the queue, and the entries it dropped (revoked leases'
-    /// among them: their reports would be stale).
+    /// when none goes; flagged `true`), taken out of the queue, and the entries it dropped
+    /// (revoked leases' among them: their reports would be stale).
     fn search(
         &self,
         st: &mut SourceState,
         judge: &dyn Fn(u32) -> Verdict,
         force: bool,
-    ) -> (Option<u64>, Vec<u64>) {
+    ) -> (Option<(u64, bool)>, Vec<u64>) {
         let signals = self.signals.lock().expect("signals");
         let mut dropped = Vec::new();
         let mut first_later = None;
@@ -554,7 +582,7 @@ impl LeaseSource {
                 p.started += 1;
             }
             if verdict == Verdict::Go {
-                return (Some(entry), dropped);
+                return (Some((entry, false)), dropped);
             }
         }
         let forced = first_later
@@ -565,7 +593,7 @@ impl LeaseSource {
                 p.started += 1;
             }
         }
-        (forced, dropped)
+        (forced.map(|e| (e, true)), dropped)
     }
 
     /// An entry's end: its outcome to the next poll, and the lease's finishing report once
@@ -818,6 +846,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     job,
                     run,
                     next: r.relayed,
+                    own: r.own,
                 })
                 .collect(),
         };
@@ -890,12 +919,11 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     if spec.grid.mode == salient_grid::Mode::FastPss {
                         // Made here, not by the compute side, so that the outcomes relayed in
                         // this reply find it.
-                        signals
-                            .lock()
-                            .expect("signals")
-                            .ledgers
-                            .entry((tile.job, tile.run))
-                            .or_insert_with(|| RunLedger::new(&spec, &spec.grid()));
+                        signals.lock().expect("signals").ledger(
+                            (tile.job, tile.run),
+                            &spec,
+                            || spec.grid(),
+                        );
                     }
                     one_at_a_time = spec.grid.mode == salient_grid::Mode::FastPss;
                     hungry_compute = false;
@@ -948,6 +976,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     outbox.clear();
                     specs.clear();
                     s.ledgers.clear();
+                    s.made.clear();
                 }
                 reg = again;
             }
@@ -1032,7 +1061,7 @@ mod tests {
             _ => Verdict::Go,
         };
         let taken = |t: Take| match t {
-            Take::Cell(e) => Some(e as u32),
+            Take::Cell(e) | Take::Insist(e) => Some(e as u32),
             _ => None,
         };
         let go_entry = match source.take(false, &judge) {
@@ -1047,8 +1076,8 @@ mod tests {
         // No orbit runs now: with every lane idle the deferred cell goes after a wait.
         assert_eq!(taken(source.take(false, &judge)), None);
         let later_entry = match source.take(true, &judge) {
-            Take::Cell(e) => e,
-            _ => panic!("a deferred cell goes when nothing runs"),
+            Take::Insist(e) => e,
+            _ => panic!("a deferred cell goes, insisted on, when nothing runs"),
         };
         assert_eq!(later_entry as u32, later);
         let mut report = || {
