@@ -159,7 +159,7 @@ pub fn submit(args: SubmitArgs) -> CliResult<()> {
         let mut client = connect(&args.conn).await?;
         let reply = client
             .submit(v1::SubmitRequest {
-                spec_json: json.into_bytes().into(),
+                spec_json: json.into_bytes(),
             })
             .await
             .map_err(|e| rpc_error("submit", e))?

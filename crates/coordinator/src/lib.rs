@@ -232,7 +232,7 @@ impl ClientService for Handle {
         &self,
         r: Request<v1::SubmitRequest>,
     ) -> Result<Response<v1::SubmitReply>, Status> {
-        let text = String::from_utf8(r.into_inner().spec_json.to_vec())
+        let text = String::from_utf8(r.into_inner().spec_json)
             .map_err(|e| Status::invalid_argument(format!("spec_json is not UTF-8 text: {e}")))?;
         let (job, warnings) = self.ask(|tx| Event::Submit(text, tx)).await?;
         Ok(Response::new(v1::SubmitReply { job, warnings }))

@@ -138,7 +138,7 @@ proptest! {
         }
         if let Some(text) = v1::SubmitRequest::decode(bytes.as_slice())
             .ok()
-            .and_then(|r| String::from_utf8(r.spec_json.to_vec()).ok())
+            .and_then(|r| String::from_utf8(r.spec_json).ok())
         {
             let out = s.submit(&text).map(|_| ());
             refused(out, &s);
