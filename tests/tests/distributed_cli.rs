@@ -661,9 +661,10 @@ fn a_worker_whose_coordinator_comes_back_on_another_store_forgets_the_old_jobs()
     assert!(wlog.contains("another store"), "{wlog}");
 }
 
-/// The six-run sweep of a 200×200 grid that once never finished on 2 or 3 workers: a worker
-/// that dropped one run's ledger (it keeps few) made it again without its own earlier
-/// outcomes, and from then on abandoned, lease after lease, a cell only those outcomes settle.
+/// A six-run sweep of a 200×200 grid: on 2 or 3 workers each worker moves through more runs
+/// than it keeps ledgers of, so it makes some run's ledger again, which must then get the
+/// worker's own earlier outcomes; without them it abandons, lease after lease, a cell only
+/// those outcomes settle, and the job never finishes.
 const SIX_RUN_SWEEP: &str = r#"
 name = "j200b"
 [system]

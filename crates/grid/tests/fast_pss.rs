@@ -338,7 +338,7 @@ fn worker_streams_skip_claimed_and_crossed_cells_without_changing_outcomes() {
 /// that outcome may be dropped by an earlier one the ledger has not seen (a worker's ledger
 /// can lack outcomes its coordinator has). Handed out insistently — nothing else runs or waits
 /// — its orbit runs to the end and gives the plain outcome; handed out as a plain cell it is
-/// abandoned on the same guess, which at every lease of it was a livelock.
+/// abandoned on the same guess, at every lease of it.
 #[test]
 fn a_cell_insisted_on_is_not_abandoned_on_a_probable_label() {
     use salient_grid::executor::{integrate_stream, LocalLedger};
