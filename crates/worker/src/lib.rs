@@ -179,13 +179,9 @@ struct RunLedger {
 }
 
 impl Signals {
-    /// The run's ledger, made (from `grid`, built only then) if there is none.
-    fn ledger(
-        &mut self,
-        key: (u64, u32),
-        spec: &JobSpec,
-        grid: impl FnOnce() -> Grid,
-    ) -> &mut RunLedger {
+    /// The run's ledger, made if there is none (on `grid`, or on the spec's grid, built only
+    /// then).
+    fn ledger(&mut self, key: (u64, u32), spec: &JobSpec, grid: Option<&Grid>) -> &mut RunLedger {
         let again = !self.made.insert(key);
         self.ledgers.entry(key).or_insert_with(|| {
             if again {
@@ -196,7 +192,10 @@ impl Signals {
                 );
             }
             RunLedger {
-                local: Arc::new(LocalLedger::new(&grid(), spec.grid.mode)),
+                local: Arc::new(match grid {
+                    Some(g) => LocalLedger::new(g, spec.grid.mode),
+                    None => LocalLedger::new(&spec.grid(), spec.grid.mode),
+                }),
                 relayed: 0,
                 own: again,
             }
@@ -258,7 +257,7 @@ fn compute_thread(
             let local = signals
                 .lock()
                 .expect("signals")
-                .ledger((key.0, key.1), &w.spec, || grid.clone())
+                .ledger((key.0, key.1), &w.spec, Some(&grid))
                 .local
                 .clone();
             (w.spec.clone(), grid, w.spec.cell_run(key.1 as usize), local)
@@ -919,11 +918,10 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     if spec.grid.mode == salient_grid::Mode::FastPss {
                         // Made here, not by the compute side, so that the outcomes relayed in
                         // this reply find it.
-                        signals.lock().expect("signals").ledger(
-                            (tile.job, tile.run),
-                            &spec,
-                            || spec.grid(),
-                        );
+                        signals
+                            .lock()
+                            .expect("signals")
+                            .ledger((tile.job, tile.run), &spec, None);
                     }
                     one_at_a_time = spec.grid.mode == salient_grid::Mode::FastPss;
                     hungry_compute = false;
