@@ -2,6 +2,8 @@
 //! which `scripts/test.sh` builds before `cargo test` (cargo does not build another package's
 //! binary for a test).
 
+pub mod cluster;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -63,4 +65,16 @@ pub fn run_dirs(out: &Path) -> Vec<PathBuf> {
         .collect();
     dirs.sort();
     dirs
+}
+
+/// `salient run SPEC --json --out OUT` (every thread of this machine), which must succeed;
+/// its JSON summary.
+pub fn run_embedded(spec: &str, out: &Path) -> serde_json::Value {
+    json_stdout(&salient(&[
+        "run",
+        spec,
+        "--json",
+        "--out",
+        out.to_str().expect("a UTF-8 path"),
+    ]))
 }

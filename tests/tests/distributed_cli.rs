@@ -2,134 +2,14 @@
 //! and the client commands. The acceptance test of the mode: `salient results` writes files
 //! byte-identical to `salient run`'s, also across a coordinator killed and restarted mid-job.
 
-use salient_tests::{json_stdout, run_dirs, salient, salient_path, write_spec};
+use salient_tests::cluster::{
+    assert_same_outputs, client, coordinator, coordinator_with, field, spawn, wait_for,
+    wait_results, worker, Proc, TOKEN,
+};
+use salient_tests::{json_stdout, run_embedded, salient, salient_path, write_spec};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-
-const TOKEN: &str = "s3cret-token";
-
-/// A child process killed when the test ends, whatever happens.
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn spawn(args: &[&str], log: &Path) -> Proc {
-    let log = std::fs::File::create(log).unwrap();
-    Proc(
-        Command::new(salient_path())
-            .args(args)
-            .env("SALIENT_TOKEN", TOKEN)
-            .env("RUST_LOG", "info,salient_coordinator=debug")
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .expect("start salient"),
-    )
-}
-
-fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !ok() {
-        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
-/// Starts a coordinator on `listen` and returns it with its URL.
-fn coordinator(dir: &Path, listen: &str, log: &str) -> (Proc, String) {
-    coordinator_with(dir, listen, log, &["--lease-seconds", "5"])
-}
-
-fn coordinator_with(dir: &Path, listen: &str, log: &str, extra: &[&str]) -> (Proc, String) {
-    let addr_file = dir.join(format!("{log}.addr"));
-    let _ = std::fs::remove_file(&addr_file);
-    let db = dir.join("coordinator.db");
-    let mut args = vec![
-        "coordinator",
-        "--listen",
-        listen,
-        "--address-file",
-        addr_file.to_str().unwrap(),
-    ];
-    // The default store unless `extra` names one.
-    if !extra.contains(&"--db") {
-        args.extend(["--db", db.to_str().unwrap()]);
-    }
-    args.extend_from_slice(extra);
-    let p = spawn(&args, &dir.join(log));
-    wait_for("the coordinator to listen", Duration::from_secs(30), || {
-        std::fs::read_to_string(&addr_file).is_ok_and(|a| a.ends_with('\n'))
-    });
-    let addr = std::fs::read_to_string(&addr_file).unwrap();
-    (p, format!("http://{}", addr.trim()))
-}
-
-fn worker(dir: &Path, url: &str, n: usize) -> Proc {
-    spawn(
-        &[
-            "worker",
-            "--coordinator",
-            url,
-            "--threads",
-            "1",
-            "--name",
-            &format!("w{n}"),
-        ],
-        &dir.join(format!("worker-{n}.log")),
-    )
-}
-
-fn client(args: &[&str], url: &str) -> std::process::Output {
-    Command::new(salient_path())
-        .args(args)
-        .args(["--coordinator", url])
-        .env("SALIENT_TOKEN", TOKEN)
-        .output()
-        .expect("run salient")
-}
-
-/// Every per-cell file of every run is byte-identical.
-fn assert_same_outputs(a: &Path, b: &Path) {
-    let (da, db) = (run_dirs(a), run_dirs(b));
-    assert_eq!(da.len(), db.len());
-    assert!(!da.is_empty());
-    for (x, y) in da.iter().zip(&db) {
-        assert_eq!(x.file_name(), y.file_name());
-        for f in ["cells.csv", "class.npy", "sali.npy"] {
-            let (bx, by) = (
-                std::fs::read(x.join(f)).unwrap(),
-                std::fs::read(y.join(f)).unwrap(),
-            );
-            assert!(
-                bx == by,
-                "{} differs between {} and {}",
-                f,
-                x.display(),
-                y.display()
-            );
-        }
-    }
-}
-
-/// The number after `key` in a log line.
-fn field(line: &str, key: &str) -> u64 {
-    let at = line
-        .find(key)
-        .unwrap_or_else(|| panic!("no {key} in {line}"))
-        + key.len();
-    line[at..]
-        .split(|c: char| !c.is_ascii_digit())
-        .next()
-        .unwrap()
-        .parse()
-        .unwrap()
-}
 
 #[test]
 fn distributed_results_equal_salient_run_byte_for_byte() {
@@ -431,17 +311,31 @@ fn tls_with_a_private_ca_and_the_health_service() {
     ));
     assert!(summary["runs"][0]["orbits_integrated"].as_u64().unwrap() > 0);
     let emb = d.join("emb");
-    json_stdout(&salient(&[
-        "run",
-        &spec,
-        "--json",
-        "--out",
-        emb.to_str().unwrap(),
-    ]));
+    run_embedded(&spec, &emb);
     assert_same_outputs(&emb, &out);
-    // Without the CA the client refuses the coordinator's certificate.
+    // Without the CA the client refuses the coordinator's certificate, and says what to give.
     let refused = client(&["status"], &url);
     assert_eq!(refused.status.code(), Some(1));
+    let text = String::from_utf8_lossy(&refused.stderr);
+    assert!(text.contains("--tls-ca"), "{text}");
+    // Plain HTTP to a TLS port: the hint names https.
+    let plain = client(&["status"], &url.replace("https://", "http://"));
+    assert_eq!(plain.status.code(), Some(1));
+    let text = String::from_utf8_lossy(&plain.stderr);
+    assert!(text.contains("use an https:// URL"), "{text}");
+    // Certificate and key swapped: refused at start, naming the mistake.
+    let swapped = salient(&[
+        "coordinator",
+        "--tls-cert",
+        &key,
+        "--tls-key",
+        &cert,
+        "--db",
+        d.join("swapped.db").to_str().unwrap(),
+    ]);
+    assert_eq!(swapped.status.code(), Some(2));
+    let text = String::from_utf8_lossy(&swapped.stderr);
+    assert!(text.contains("swapped"), "{text}");
 
     // grpc.health.v1 answers SERVING over TLS, without the token (for probes).
     let rt = tokio::runtime::Runtime::new().unwrap();
@@ -504,17 +398,7 @@ fn a_worker_killed_mid_run_has_its_tile_leased_again() {
     w1.0.kill().unwrap();
     w1.0.wait().unwrap();
     let dist = d.join("dist");
-    json_stdout(&client(
-        &[
-            "results",
-            &job.to_string(),
-            "--wait",
-            "--json",
-            "--out",
-            dist.to_str().unwrap(),
-        ],
-        &url,
-    ));
+    wait_results(&url, job, &dist);
     let log = std::fs::read_to_string(d.join("coordinator.log")).unwrap();
     let lapsed = log
         .lines()
@@ -528,13 +412,7 @@ fn a_worker_killed_mid_run_has_its_tile_leased_again() {
         "tile {tile} was not leased again to w2"
     );
     let emb = d.join("emb");
-    json_stdout(&salient(&[
-        "run",
-        &spec,
-        "--json",
-        "--out",
-        emb.to_str().unwrap(),
-    ]));
+    run_embedded(&spec, &emb);
     assert_same_outputs(&emb, &dist);
 }
 

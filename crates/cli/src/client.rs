@@ -3,9 +3,10 @@
 //! the same files as `salient run`, so both modes' outputs can be compared byte for byte.
 
 use crate::cluster::runtime_for;
+use crate::output::Staged;
 use crate::run::{write_run, write_sweep, RunResult};
 use crate::spec::{self, JobSpec};
-use crate::usage::{runtime, CliError, CliResult};
+use crate::usage::{CliError, CliResult};
 use clap::Args;
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use salient_grid::Ledger;
@@ -13,7 +14,8 @@ use salient_proto::outcome_from_wire;
 use salient_proto::v1;
 use salient_proto::v1::client_service_client::ClientServiceClient;
 use salient_proto::MAX_MESSAGE_BYTES;
-use salient_worker::{endpoint, Token};
+use salient_worker::{endpoint, explain_transport, Token};
+use std::error::Error;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -33,6 +35,10 @@ pub struct Connection {
     /// Bearer token for the coordinator.
     #[arg(long, env = "SALIENT_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// Read the bearer token from this file (first line), out of sight of `ps`; it takes
+    /// precedence over --token and $SALIENT_TOKEN.
+    #[arg(long)]
+    token_file: Option<PathBuf>,
     /// PEM of the CA that signed the coordinator's certificate (https only).
     #[arg(long)]
     tls_ca: Option<PathBuf>,
@@ -100,12 +106,24 @@ fn rpc_error(what: &str, e: tonic::Status) -> CliError {
         Code::InvalidArgument | Code::NotFound | Code::FailedPrecondition => {
             CliError::Usage(format!("{what}: {}", e.message()))
         }
-        Code::Unauthenticated => CliError::Runtime(format!("{what}: {}", e.message())),
+        Code::Unauthenticated | Code::DataLoss => {
+            CliError::Runtime(format!("{what}: {}", e.message()))
+        }
+        // Failures of the connection (no answer of the coordinator's) carry their causes and,
+        // for the usual mistakes, a hint.
+        Code::Unavailable | Code::Unknown | Code::Internal if e.source().is_some() => {
+            let url = COORDINATOR_URL.get().map_or("", String::as_str);
+            CliError::Runtime(format!("{what}: {}", explain_transport(url, &e)))
+        }
         _ => CliError::Runtime(format!("{what}: {} ({:?})", e.message(), e.code())),
     }
 }
 
+/// The coordinator this process talks to (one per command), for [`rpc_error`]'s hints.
+static COORDINATOR_URL: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+
 async fn connect(c: &Connection) -> CliResult<Client> {
+    let _ = COORDINATOR_URL.set(c.coordinator.clone());
     let ca =
         match &c.tls_ca {
             Some(p) => Some(std::fs::read(p).map_err(|e| {
@@ -113,21 +131,21 @@ async fn connect(c: &Connection) -> CliResult<Client> {
             })?),
             None => None,
         };
+    let token = crate::cluster::token(c.token.clone(), c.token_file.as_ref())?;
     let channel = endpoint(&c.coordinator, ca.as_deref())
         .map_err(CliError::Usage)?
         .connect()
         .await
         .map_err(|e| {
             CliError::Runtime(format!(
-                "cannot reach the coordinator at {}: {e}",
-                c.coordinator
+                "cannot reach the coordinator at {}: {}",
+                c.coordinator,
+                explain_transport(&c.coordinator, &e)
             ))
         })?;
-    Ok(
-        ClientServiceClient::with_interceptor(channel, Token(c.token.clone()))
-            .max_decoding_message_size(MAX_MESSAGE_BYTES)
-            .max_encoding_message_size(MAX_MESSAGE_BYTES),
-    )
+    Ok(ClientServiceClient::with_interceptor(channel, Token(token))
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES))
 }
 
 /// The spec as the JSON the coordinator takes (a valid TOML spec converts losslessly).
@@ -155,6 +173,17 @@ pub fn submit(args: SubmitArgs) -> CliResult<()> {
     for w in &job.warnings {
         tracing::warn!("{w}");
     }
+    // With --wait the output folder is checked (and staged) before the job is sent.
+    let staged = match args.wait {
+        true => {
+            let out = args
+                .out
+                .clone()
+                .unwrap_or_else(|| Path::new("out").join(&job.name));
+            Some((Staged::begin(&out, "--out")?, out))
+        }
+        false => None,
+    };
     runtime_for(1)?.block_on(async {
         let mut client = connect(&args.conn).await?;
         let reply = client
@@ -165,17 +194,16 @@ pub fn submit(args: SubmitArgs) -> CliResult<()> {
             .map_err(|e| rpc_error("submit", e))?
             .into_inner();
         tracing::info!(job = reply.job, name = %job.name, "submitted");
-        if !args.wait {
+        let Some((staged, out)) = staged else {
             if args.json {
                 println!("{}", serde_json::json!({ "job": reply.job }));
             } else {
                 println!("{}", reply.job);
             }
             return Ok(());
-        }
-        wait_finished(&mut client, reply.job).await?;
-        let out = args.out.unwrap_or_else(|| Path::new("out").join(&job.name));
-        fetch_and_write(&mut client, reply.job, &out, true).await
+        };
+        wait_finished(&mut client, &args.conn.coordinator, reply.job).await?;
+        fetch_and_write(&mut client, reply.job, &out, staged, true).await
     })
 }
 
@@ -263,53 +291,43 @@ fn run_label(r: &v1::RunProgress) -> String {
 }
 
 pub fn watch(args: JobArgs) -> CliResult<()> {
+    let url = args.conn.coordinator.clone();
     runtime_for(1)?.block_on(async {
         let mut client = connect(&args.conn).await?;
-        let mut stream = client
-            .watch(v1::WatchRequest { job: args.job })
-            .await
-            .map_err(|e| rpc_error("watch", e))?
-            .into_inner();
-        let tty = std::io::stderr().is_terminal();
-        let multi = MultiProgress::new();
-        let mut bars: Vec<ProgressBar> = Vec::new();
+        let mut bars = Bars::new(std::io::stderr().is_terminal());
         let mut last: Option<v1::JobStatus> = None;
-        while let Some(msg) = stream.message().await.map_err(|e| rpc_error("watch", e))? {
-            if tty {
-                while bars.len() < msg.runs.len() {
-                    let r = &msg.runs[bars.len()];
-                    let b = multi.add(ProgressBar::new(r.compatible));
-                    b.set_style(
-                        ProgressStyle::with_template(
-                            "{prefix} {bar:30} {pos}/{len} cells  {msg}",
-                        )
-                        .expect("template"),
-                    );
-                    b.set_prefix(run_label(r));
-                    bars.push(b);
+        let mut away = Away::default();
+        // A coordinator that restarts ends the stream with an error: subscribe again.
+        'subscribe: loop {
+            let mut stream = match client.watch(v1::WatchRequest { job: args.job }).await {
+                Ok(s) => s.into_inner(),
+                Err(e) if is_transient(&e) => {
+                    away.pause("watch", &url, e).await?;
+                    continue;
                 }
-                for (b, r) in bars.iter().zip(&msg.runs) {
-                    b.set_position(r.resolved);
-                    b.set_message(format!(
-                        "{} orbits, {:.0}/s, ETA {}{}",
-                        r.orbits,
-                        r.orbits_per_s,
-                        r.eta_s.map_or("—".into(), |e| format!("{e:.0} s")),
-                        if r.done { ", done" } else { "" }
-                    ));
-                }
-            } else {
-                for r in msg.runs.iter().filter(|r| !r.done && r.orbits > 0) {
-                    tracing::info!(job = msg.job, run = %run_label(r), resolved = r.resolved, compatible = r.compatible, orbits = r.orbits, orbits_per_s = r.orbits_per_s, eta_s = r.eta_s.unwrap_or(f64::NAN), workers = msg.workers, "progress");
+                Err(e) => return Err(rpc_error("watch", e)),
+            };
+            loop {
+                match stream.message().await {
+                    Ok(Some(msg)) => {
+                        away.back(&url);
+                        bars.show(&msg);
+                        last = Some(msg);
+                    }
+                    Ok(None) => break 'subscribe,
+                    Err(e) if is_transient(&e) => {
+                        away.pause("watch", &url, e).await?;
+                        continue 'subscribe;
+                    }
+                    Err(e) => return Err(rpc_error("watch", e)),
                 }
             }
-            last = Some(msg);
         }
-        for b in bars {
-            b.finish();
-        }
+        bars.finish();
         let Some(last) = last else {
-            return Err(CliError::Runtime("the coordinator closed the stream".into()));
+            return Err(CliError::Runtime(
+                "the coordinator closed the stream".into(),
+            ));
         };
         println!("job {} {}", last.job, last.state);
         match last.state.as_str() {
@@ -317,6 +335,58 @@ pub fn watch(args: JobArgs) -> CliResult<()> {
             other => Err(CliError::Runtime(format!("job {} ended {other}", last.job))),
         }
     })
+}
+
+/// `watch`'s display: one progress bar per run on a terminal, progress log lines otherwise.
+struct Bars {
+    tty: bool,
+    multi: MultiProgress,
+    bars: Vec<ProgressBar>,
+}
+
+impl Bars {
+    fn new(tty: bool) -> Bars {
+        Bars {
+            tty,
+            multi: MultiProgress::new(),
+            bars: Vec::new(),
+        }
+    }
+
+    fn show(&mut self, msg: &v1::JobStatus) {
+        if !self.tty {
+            for r in msg.runs.iter().filter(|r| !r.done && r.orbits > 0) {
+                tracing::info!(job = msg.job, run = %run_label(r), resolved = r.resolved, compatible = r.compatible, orbits = r.orbits, orbits_per_s = r.orbits_per_s, eta_s = r.eta_s.unwrap_or(f64::NAN), workers = msg.workers, "progress");
+            }
+            return;
+        }
+        while self.bars.len() < msg.runs.len() {
+            let r = &msg.runs[self.bars.len()];
+            let b = self.multi.add(ProgressBar::new(r.compatible));
+            b.set_style(
+                ProgressStyle::with_template("{prefix} {bar:30} {pos}/{len} cells  {msg}")
+                    .expect("template"),
+            );
+            b.set_prefix(run_label(r));
+            self.bars.push(b);
+        }
+        for (b, r) in self.bars.iter().zip(&msg.runs) {
+            b.set_position(r.resolved);
+            b.set_message(format!(
+                "{} orbits, {:.0}/s, ETA {}{}",
+                r.orbits,
+                r.orbits_per_s,
+                r.eta_s.map_or("—".into(), |e| format!("{e:.0} s")),
+                if r.done { ", done" } else { "" }
+            ));
+        }
+    }
+
+    fn finish(self) {
+        for b in self.bars {
+            b.finish();
+        }
+    }
 }
 
 pub fn cancel(args: JobArgs) -> CliResult<()> {
@@ -345,9 +415,73 @@ async fn job_state(client: &mut Client, job: u64) -> CliResult<String> {
         .ok_or_else(|| CliError::Usage(format!("no job {job}")))
 }
 
-async fn wait_finished(client: &mut Client, job: u64) -> CliResult<()> {
+/// How long the commands that wait (`results --wait`, `submit --wait`, `watch`) keep trying
+/// to reach a coordinator that went away: a restart takes seconds, a move to another host
+/// minutes.
+const RECONNECT_FOR: Duration = Duration::from_secs(300);
+
+/// Failures of the connection rather than answers of the coordinator: worth trying again.
+fn is_transient(e: &tonic::Status) -> bool {
+    matches!(
+        e.code(),
+        Code::Unavailable | Code::Unknown | Code::Cancelled | Code::DeadlineExceeded
+    )
+}
+
+/// Tracks how long the coordinator has been out of reach while a command waits on it.
+#[derive(Default)]
+struct Away {
+    since: Option<std::time::Instant>,
+}
+
+impl Away {
+    /// After a transient failure: waits a moment before the next try, or gives up once the
+    /// coordinator has been away for [`RECONNECT_FOR`].
+    async fn pause(&mut self, what: &str, url: &str, e: tonic::Status) -> CliResult<()> {
+        let since = *self.since.get_or_insert_with(|| {
+            tracing::warn!(coordinator = url, error = %e.message(), "coordinator out of reach; trying again");
+            std::time::Instant::now()
+        });
+        if since.elapsed() > RECONNECT_FOR {
+            return Err(CliError::Runtime(format!(
+                "{what}: the coordinator at {url} has been out of reach for {} s: {}",
+                RECONNECT_FOR.as_secs(),
+                e.message()
+            )));
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        Ok(())
+    }
+
+    fn back(&mut self, url: &str) {
+        if self.since.take().is_some() {
+            tracing::info!(coordinator = url, "coordinator reached again");
+        }
+    }
+}
+
+/// Waits until the job is done (an error if it ends otherwise), riding out coordinator
+/// restarts.
+async fn wait_finished(client: &mut Client, url: &str, job: u64) -> CliResult<()> {
+    let mut away = Away::default();
     loop {
-        match job_state(client, job).await?.as_str() {
+        let state = match client.status(v1::StatusRequest { job: Some(job) }).await {
+            Ok(reply) => {
+                away.back(url);
+                reply
+                    .into_inner()
+                    .jobs
+                    .first()
+                    .map(|j| j.state.clone())
+                    .ok_or_else(|| CliError::Usage(format!("no job {job}")))?
+            }
+            Err(e) if is_transient(&e) => {
+                away.pause("status", url, e).await?;
+                continue;
+            }
+            Err(e) => return Err(rpc_error("status", e)),
+        };
+        match state.as_str() {
             "done" => return Ok(()),
             s @ ("cancelled" | "failed") => {
                 return Err(CliError::Runtime(format!("job {job} ended {s}")))
@@ -360,17 +494,6 @@ async fn wait_finished(client: &mut Client, job: u64) -> CliResult<()> {
 pub fn results(args: ResultsArgs) -> CliResult<()> {
     runtime_for(1)?.block_on(async {
         let mut client = connect(&args.conn).await?;
-        if args.wait {
-            wait_finished(&mut client, args.job).await?;
-        } else {
-            let state = job_state(&mut client, args.job).await?;
-            if state != "done" {
-                return Err(CliError::Runtime(format!(
-                    "job {} is {state}; results exist once it is done (use --wait)",
-                    args.job
-                )));
-            }
-        }
         let out = match args.out {
             Some(o) => o,
             None => {
@@ -384,17 +507,36 @@ pub fn results(args: ResultsArgs) -> CliResult<()> {
                     .jobs
                     .first()
                     .map(|j| j.name.clone())
-                    .unwrap_or_default();
+                    .ok_or_else(|| CliError::Usage(format!("no job {}", args.job)))?;
                 Path::new("out").join(name)
             }
         };
-        fetch_and_write(&mut client, args.job, &out, args.json).await
+        // Checked before waiting: a folder that cannot be written fails now, not after the job.
+        let staged = Staged::begin(&out, "--out")?;
+        if args.wait {
+            wait_finished(&mut client, &args.conn.coordinator, args.job).await?;
+        } else {
+            let state = job_state(&mut client, args.job).await?;
+            if state != "done" {
+                return Err(CliError::Runtime(format!(
+                    "job {} is {state}; results exist once it is done (use --wait)",
+                    args.job
+                )));
+            }
+        }
+        fetch_and_write(&mut client, args.job, &out, staged, args.json).await
     })
 }
 
 /// Streams a finished job's results, rebuilds each run's ledger from its committed outcomes
 /// (the labels follow from them exactly), and writes what `salient run` writes.
-async fn fetch_and_write(client: &mut Client, job: u64, out: &Path, json: bool) -> CliResult<()> {
+async fn fetch_and_write(
+    client: &mut Client,
+    job: u64,
+    out: &Path,
+    staged: Staged,
+    json: bool,
+) -> CliResult<()> {
     use v1::results_chunk::Part;
     let mut stream = client
         .results(v1::ResultsRequest { job })
@@ -443,7 +585,6 @@ async fn fetch_and_write(client: &mut Client, job: u64, out: &Path, json: bool) 
         }
     }
     let (job_spec, grid) = spec.ok_or_else(|| bad("no header".into()))?;
-    std::fs::create_dir_all(out).map_err(|e| runtime(&format!("creating {}", out.display()), e))?;
     let mut results = Vec::new();
     for (h, mut ledger, _) in runs {
         if !ledger.done() {
@@ -461,8 +602,8 @@ async fn fetch_and_write(client: &mut Client, job: u64, out: &Path, json: bool) 
             h.wall_s,
             out,
         );
-        write_run(&job_spec, &r)?;
+        write_run(&job_spec, &r, staged.path())?;
         results.push(r);
     }
-    write_sweep(&results, out, json)
+    write_sweep(&results, out, staged, json)
 }

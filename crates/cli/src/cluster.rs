@@ -1,7 +1,7 @@
 //! `salient coordinator` and `salient worker`: the long-running processes of the distributed
 //! mode. Both stop cleanly on SIGTERM or Ctrl-C (the worker drains first).
 
-use crate::usage::{positive, runtime, CliError, CliResult};
+use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
 use salient_coordinator::scheduler::Config;
 use std::net::SocketAddr;
@@ -19,6 +19,14 @@ pub struct CoordinatorArgs {
     /// Bearer token workers and clients must present.
     #[arg(long, env = "SALIENT_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// Read the bearer token from this file (first line), out of sight of `ps`; it takes
+    /// precedence over --token and $SALIENT_TOKEN.
+    #[arg(long)]
+    token_file: Option<PathBuf>,
+    /// Serve a non-loopback address without a token: anyone who reaches the port may submit
+    /// and cancel jobs and report results. Refused without this flag.
+    #[arg(long)]
+    insecure: bool,
     /// PEM certificate chain for TLS (with --tls-key).
     #[arg(long, requires = "tls_key")]
     tls_cert: Option<PathBuf>,
@@ -28,6 +36,10 @@ pub struct CoordinatorArgs {
     /// Seconds a lease lives without a poll that renews it.
     #[arg(long, default_value_t = 30.0)]
     lease_seconds: f64,
+    /// Seconds without a poll after which a worker is taken for dead and its leases go to
+    /// other workers (workers poll every 0.2 s while busy).
+    #[arg(long, default_value_t = 5.0)]
+    worker_timeout_seconds: f64,
     /// Seconds between progress log lines of each running run.
     #[arg(long, default_value_t = 10.0)]
     progress_seconds: f64,
@@ -63,6 +75,10 @@ pub struct WorkerArgs {
     /// Bearer token for the coordinator.
     #[arg(long, env = "SALIENT_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// Read the bearer token from this file (first line), out of sight of `ps`; it takes
+    /// precedence over --token and $SALIENT_TOKEN.
+    #[arg(long)]
+    token_file: Option<PathBuf>,
     /// PEM of the CA that signed the coordinator's certificate (https only).
     #[arg(long)]
     tls_ca: Option<PathBuf>,
@@ -73,11 +89,103 @@ pub struct WorkerArgs {
     /// at a time whatever this says (a second would speculate ahead of the claims).
     #[arg(long, default_value_t = 2)]
     leases: usize,
+    /// Seconds a stopping worker (SIGTERM, Ctrl-C) may take to finish its lease in progress
+    /// and hand in its reports; past them it stops anyway, its leases going to others.
+    #[arg(long, default_value_t = 60.0)]
+    drain_seconds: f64,
 }
 
 fn read(path: &PathBuf, flag: &str) -> CliResult<Vec<u8>> {
     std::fs::read(path)
         .map_err(|e| CliError::Usage(format!("{flag}: cannot read {}: {e}", path.display())))
+}
+
+/// The token given by value or by file (its first line, without surrounding white space); an
+/// empty one is refused, as it would match a request that sends an empty token.
+pub fn token(value: Option<String>, file: Option<&PathBuf>) -> CliResult<Option<String>> {
+    let token = match (value, file) {
+        (_, Some(path)) => {
+            let text = String::from_utf8(read(path, "--token-file")?).map_err(|_| {
+                CliError::Usage(format!("--token-file {}: not UTF-8 text", path.display()))
+            })?;
+            let first = text.lines().next().unwrap_or("").trim().to_string();
+            if first.is_empty() {
+                return Err(CliError::Usage(format!(
+                    "--token-file {}: the first line is empty",
+                    path.display()
+                )));
+            }
+            Some(first)
+        }
+        (value, None) => value,
+    };
+    if token.as_deref() == Some("") {
+        return Err(CliError::Usage("--token must not be empty".into()));
+    }
+    Ok(token)
+}
+
+/// Reads a PEM file and checks it holds what `flag` asks for (`what`: "CERTIFICATE" or
+/// "PRIVATE KEY"), so a swapped or wrong file is named before TLS sees it.
+fn read_pem(path: &PathBuf, flag: &str, what: &str) -> CliResult<Vec<u8>> {
+    let bytes = read(path, flag)?;
+    let text = String::from_utf8_lossy(&bytes);
+    let holds = |kind: &str| {
+        text.lines().any(|l| {
+            l.starts_with("-----BEGIN ") && l.trim_end().ends_with(&format!("{kind}-----"))
+        })
+    };
+    if holds(what) {
+        return Ok(bytes);
+    }
+    let found = if holds("PRIVATE KEY") {
+        "a private key"
+    } else if holds("CERTIFICATE") {
+        "a certificate"
+    } else {
+        "no PEM block"
+    };
+    Err(CliError::Usage(format!(
+        "{flag} {}: expected a PEM {what}, found {found}{}",
+        path.display(),
+        if found == "no PEM block" {
+            " (a DER file must be converted: openssl x509 -in F -inform der -out F.pem)"
+        } else {
+            " (are --tls-cert and --tls-key swapped?)"
+        }
+    )))
+}
+
+/// A duration flag in `[min, one day]`: beyond that it is a mistake, and far beyond it a
+/// duration cannot even be represented.
+fn seconds_in(flag: &str, v: f64, min: f64) -> CliResult<f64> {
+    const DAY: f64 = 86_400.0;
+    if (min..=DAY).contains(&v) {
+        Ok(v)
+    } else {
+        Err(CliError::Usage(format!(
+            "{flag} must be in [{min}, {DAY}] seconds (got {v})"
+        )))
+    }
+}
+
+/// Refuses to serve a non-loopback address without a token unless the operator accepted it
+/// with `--insecure`; warns where a token would cross the network in clear.
+fn check_exposure(listen: SocketAddr, token: bool, tls: bool, insecure: bool) -> CliResult<()> {
+    if listen.ip().is_loopback() {
+        return Ok(());
+    }
+    if !token && !insecure {
+        return Err(CliError::Usage(format!(
+            "--listen {listen} accepts other hosts, and without a token anyone who reaches it \
+             may submit, cancel and report: give --token-file (or --token / $SALIENT_TOKEN), \
+             ideally with --tls-cert and --tls-key, or say --insecure to accept that"
+        )));
+    }
+    if token && !tls {
+        tracing::warn!(%listen, "serving without TLS: the token crosses the network in clear");
+    }
+    Ok(())
 }
 
 /// Resolves on Ctrl-C or SIGTERM.
@@ -111,29 +219,34 @@ pub fn runtime_for(threads: usize) -> CliResult<tokio::runtime::Runtime> {
 }
 
 pub fn coordinator(args: CoordinatorArgs) -> CliResult<()> {
-    let lease = positive("--lease-seconds", args.lease_seconds)?;
-    let progress = positive("--progress-seconds", args.progress_seconds)?;
+    let lease = seconds_in("--lease-seconds", args.lease_seconds, 0.01)?;
+    // At least 5 polls of a busy worker.
+    let worker_timeout = seconds_in("--worker-timeout-seconds", args.worker_timeout_seconds, 1.0)?;
+    let progress = seconds_in("--progress-seconds", args.progress_seconds, 0.01)?;
     let tls = match (&args.tls_cert, &args.tls_key) {
-        (Some(c), Some(k)) => Some((read(c, "--tls-cert")?, read(k, "--tls-key")?)),
+        (Some(c), Some(k)) => Some((
+            read_pem(c, "--tls-cert", "CERTIFICATE")?,
+            read_pem(k, "--tls-key", "PRIVATE KEY")?,
+        )),
         _ => None,
     };
+    let token = token(args.token, args.token_file.as_ref())?;
+    check_exposure(args.listen, token.is_some(), tls.is_some(), args.insecure)?;
     if !(1..=100_000).contains(&args.lease_cells_per_thread) {
         return Err(CliError::Usage(format!(
             "--lease-cells-per-thread must be in 1..=100000 (got {})",
             args.lease_cells_per_thread
         )));
     }
-    if args.token.as_deref() == Some("") {
-        return Err(CliError::Usage("--token must not be empty".into()));
-    }
     let opts = salient_coordinator::Options {
         listen: args.listen,
         db: args.db,
-        token: args.token,
+        token,
         tls,
         config: Config {
             lease: Duration::from_secs_f64(lease),
             poll: Duration::from_millis(200),
+            worker_timeout: Duration::from_secs_f64(worker_timeout),
             lease_cells_per_thread: args.lease_cells_per_thread,
             max_cells: args.max_cells,
             max_cell_runs: args.max_cell_runs,
@@ -172,13 +285,15 @@ pub fn worker(args: WorkerArgs) -> CliResult<()> {
             args.leases
         )));
     }
+    let drain = seconds_in("--drain-seconds", args.drain_seconds, 0.0)?;
     // Bad addresses are bad input (exit 2), found before anything starts.
     salient_worker::endpoint(&args.coordinator, None).map_err(CliError::Usage)?;
     let tls_ca = args
         .tls_ca
         .as_ref()
-        .map(|p| read(p, "--tls-ca"))
+        .map(|p| read_pem(p, "--tls-ca", "CERTIFICATE"))
         .transpose()?;
+    let token = token(args.token, args.token_file.as_ref())?;
     let name = args.name.unwrap_or_else(|| {
         let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
             .map(|h| h.trim().to_string())
@@ -189,9 +304,10 @@ pub fn worker(args: WorkerArgs) -> CliResult<()> {
         coordinator: args.coordinator,
         threads,
         name,
-        token: args.token,
+        token,
         tls_ca,
         max_leases: args.leases,
+        drain_timeout: Duration::from_secs_f64(drain),
     };
     let rt = runtime_for(1)?;
     rt.block_on(salient_worker::run(opts, terminated()))

@@ -4,6 +4,7 @@
 mod client;
 mod cluster;
 mod orbit;
+mod output;
 mod precision;
 mod run;
 mod spec;

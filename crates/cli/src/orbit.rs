@@ -1,5 +1,6 @@
 //! `salient orbit`: one orbit, its indicators, and (with `--out`) a time series and plots.
 
+use crate::output::Staged;
 use crate::usage::{finite, positive, runtime, CliError, CliResult};
 use clap::{Args, ValueEnum};
 use salient_core::adaptive::Protocol as AdaptiveProtocol;
@@ -224,6 +225,11 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
 
 pub fn run(args: OrbitArgs) -> CliResult<()> {
     let job = validate(&args)?;
+    let staged = args
+        .out
+        .as_deref()
+        .map(|dir| Staged::begin(dir, "--out"))
+        .transpose()?;
     let start = Instant::now();
     let result: OrbitResult<2> = if job.gali_all {
         integrate_job::<4>(&job)
@@ -232,16 +238,17 @@ pub fn run(args: OrbitArgs) -> CliResult<()> {
     };
     let wall = start.elapsed().as_secs_f64();
     let mut summary = summary_json(&job, &result, wall);
-    if let Some(dir) = &args.out {
-        let mut warnings = write_outputs(dir, &job, &result, &summary)?;
+    if let (Some(staged), Some(dir)) = (staged, &args.out) {
+        let mut warnings = write_outputs(staged.path(), &job, &result, &summary)?;
         if let Some(Value::Array(w)) = summary.get_mut("warnings") {
             w.extend(warnings.drain(..).map(Value::String));
         }
         summary["out_dir"] = json!(dir.display().to_string());
         write_file(
-            &dir.join("orbit.json"),
+            &staged.path().join("orbit.json"),
             &(serde_json::to_string_pretty(&summary).unwrap() + "\n"),
         )?;
+        staged.publish()?;
     }
     if args.json {
         println!("{summary}");
@@ -368,7 +375,6 @@ fn write_outputs(
     r: &OrbitResult<2>,
     _summary: &Value,
 ) -> CliResult<Vec<String>> {
-    std::fs::create_dir_all(dir).map_err(|e| runtime(&format!("creating {}", dir.display()), e))?;
     let k_max = r.series.first().map_or(0, |s| s.gali.len()) + 1;
     let mut csv = String::from("t,sali");
     for k in 2..=k_max {

@@ -1,5 +1,6 @@
 //! `salient precision`: speed against error for every method on one orbit.
 
+use crate::output::Staged;
 use crate::usage::{finite, runtime, CliError, CliResult};
 use clap::Args;
 use salient_core::precision::{
@@ -106,6 +107,11 @@ pub fn run(args: PrecisionArgs) -> CliResult<()> {
             "--energy {energy}: orbit {name} is not on the section q1 = 0, p1 > 0; allowed: --energy > {e_min}"
         ))
     })?;
+    let staged = args
+        .out
+        .as_deref()
+        .map(|dir| Staged::begin(dir, "--out"))
+        .transpose()?;
     let ladder = default_ladder();
     let n = ladder.len();
     eprintln!(
@@ -180,8 +186,9 @@ pub fn run(args: PrecisionArgs) -> CliResult<()> {
         },
         "rows": rows.iter().map(row_json).collect::<Vec<_>>(),
     });
-    if let Some(dir) = &args.out {
-        write_outputs(dir, &name, args.t_final, &table, &summary, &rows)?;
+    if let Some(staged) = staged {
+        write_outputs(staged.path(), &name, args.t_final, &table, &summary, &rows)?;
+        staged.publish()?;
     }
     if args.json {
         println!("{summary}");
@@ -205,7 +212,6 @@ fn write_outputs(
     summary: &Value,
     rows: &[Row],
 ) -> CliResult<()> {
-    std::fs::create_dir_all(dir).map_err(|e| runtime(&format!("creating {}", dir.display()), e))?;
     let write = |file: &str, text: String| {
         let path = dir.join(file);
         std::fs::write(&path, text).map_err(|e| runtime(&format!("writing {}", path.display()), e))

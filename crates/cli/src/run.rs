@@ -1,6 +1,7 @@
 //! `salient run SPEC.toml`: every member of the sweep on this machine's cores, with the same
 //! ledger and tile executor the distributed mode uses.
 
+use crate::output::Staged;
 use crate::spec::{self, JobSpec, RunSpec};
 use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
@@ -83,8 +84,7 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         .out
         .clone()
         .unwrap_or_else(|| Path::new("out").join(&job.name));
-    std::fs::create_dir_all(&out)
-        .map_err(|e| runtime(&format!("creating {}", out.display()), e))?;
+    let staged = Staged::begin(&out, "--out")?;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
@@ -108,26 +108,29 @@ pub fn run(args: RunArgs) -> CliResult<()> {
             .flatten();
         let forecast = similar.map(|p| (p.ledger.forecast(), p.dir_name()));
         let result = pool.install(|| run_one(&job, index, r, threads, &out, forecast))?;
-        pool.install(|| write_run(&job, &result))?;
+        pool.install(|| write_run(&job, &result, staged.path()))?;
         results.push(result);
     }
-    write_sweep(&results, &out, args.json)
+    write_sweep(&results, &out, staged, args.json)
 }
 
-/// The sweep's table.md/.csv/.json, percent_vs_t.png (when a run has checkpoints), and the
-/// table or the JSON summary on stdout.
-pub fn write_sweep(results: &[RunResult], out: &Path, json: bool) -> CliResult<()> {
+/// The sweep's table.md/.csv/.json, percent_vs_t.png (when a run has checkpoints), written
+/// beside the runs' folders in `staged`, which is then published into `out`; then the table or
+/// the JSON summary on stdout.
+pub fn write_sweep(results: &[RunResult], out: &Path, staged: Staged, json: bool) -> CliResult<()> {
     let table = sweep_table(results);
     let summary = json!({ "runs": results.iter().map(run_json).collect::<Vec<_>>() });
-    write_file(&out.join("table.md"), &table.to_markdown())?;
-    write_file(&out.join("table.csv"), &table.to_csv())?;
+    let stage = staged.path();
+    write_file(&stage.join("table.md"), &table.to_markdown())?;
+    write_file(&stage.join("table.csv"), &table.to_csv())?;
     write_file(
-        &out.join("table.json"),
+        &stage.join("table.json"),
         &(serde_json::to_string_pretty(&summary).expect("JSON") + "\n"),
     )?;
     if results.iter().any(|r| !r.checkpoints.is_empty()) {
-        plot_percent_vs_t(results, &out.join("percent_vs_t.png"))?;
+        plot_percent_vs_t(results, &stage.join("percent_vs_t.png"))?;
     }
+    staged.publish()?;
     if json {
         println!("{summary}");
     } else {
@@ -380,21 +383,21 @@ fn write_cells_csv(r: &RunResult, path: &Path) -> CliResult<()> {
     write_file(path, &csv)
 }
 
-/// cells.csv, class.npy, sali.npy, map.png and run.json of one run; cells.csv is written
-/// beside the rest on the current rayon pool.
-pub fn write_run(job: &JobSpec, r: &RunResult) -> CliResult<()> {
-    let dir = &r.dir;
+/// cells.csv, class.npy, sali.npy, map.png and run.json of one run, in its folder under
+/// `stage` (the staging folder of the output folder); cells.csv is written beside the rest on
+/// the current rayon pool.
+pub fn write_run(job: &JobSpec, r: &RunResult, stage: &Path) -> CliResult<()> {
+    let dir = &stage.join(r.dir_name());
     std::fs::create_dir_all(dir).map_err(|e| runtime(&format!("creating {}", dir.display()), e))?;
     let (csv, rest) = rayon::join(
         || write_cells_csv(r, &dir.join("cells.csv")),
-        || write_arrays_and_map(job, r),
+        || write_arrays_and_map(job, r, dir),
     );
     csv.and(rest)
 }
 
-/// class.npy, sali.npy, map.png and run.json of one run.
-fn write_arrays_and_map(job: &JobSpec, r: &RunResult) -> CliResult<()> {
-    let dir = &r.dir;
+/// class.npy, sali.npy, map.png and run.json of one run, in `dir`.
+fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<()> {
     let g = &r.grid;
     let mut class_codes = vec![0u8; g.cells()];
     let mut sali = vec![f64::NAN; g.cells()];

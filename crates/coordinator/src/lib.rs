@@ -278,7 +278,19 @@ impl ClientService for Handle {
     }
 }
 
-/// Requires `authorization: Bearer <token>` when a token is configured.
+/// The gRPC method of a request (its path), put where the token check can name it: an
+/// interceptor sees metadata and extensions, not the URI.
+#[derive(Clone)]
+struct MethodPath(String);
+
+fn tag_method<B>(mut req: tonic::codegen::http::Request<B>) -> tonic::codegen::http::Request<B> {
+    let path = MethodPath(req.uri().path().to_string());
+    req.extensions_mut().insert(path);
+    req
+}
+
+/// Requires `authorization: Bearer <token>` when a token is configured. A refused request is
+/// logged with the peer's address and the method, never with what it presented.
 fn check_token(
     token: Option<String>,
 ) -> impl Fn(Request<()>) -> Result<Request<()>, Status> + Clone {
@@ -292,12 +304,24 @@ fn check_token(
             .and_then(|v| v.to_str().ok())
             .and_then(|v| v.strip_prefix("Bearer "));
         if got.is_some_and(|g| constant_time_eq(g.as_bytes(), want.as_bytes())) {
-            Ok(req)
-        } else {
-            Err(Status::unauthenticated(
-                "a valid bearer token is required (--token or $SALIENT_TOKEN)",
-            ))
+            return Ok(req);
         }
+        let peer = req
+            .remote_addr()
+            .map_or_else(|| "unknown".to_string(), |a| a.to_string());
+        let method = req
+            .extensions()
+            .get::<MethodPath>()
+            .map_or("unknown", |m| m.0.as_str());
+        let presented = if got.is_some() {
+            "a wrong token"
+        } else {
+            "no token"
+        };
+        tracing::warn!(%peer, method, presented, "authentication failed");
+        Err(Status::unauthenticated(
+            "a valid bearer token is required (--token, --token-file or $SALIENT_TOKEN)",
+        ))
     }
 }
 
@@ -379,9 +403,16 @@ pub async fn serve(
     if let Some((cert, key)) = &opts.tls {
         builder = builder
             .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(cert, key)))
-            .map_err(|e| format!("TLS configuration: {e}"))?;
+            .map_err(|e| {
+                format!(
+                    "TLS configuration: {e} (--tls-cert must hold the PEM certificate chain, \
+                     the coordinator's own certificate first, and --tls-key the PEM private \
+                     key of that certificate)"
+                )
+            })?;
     }
     let result = builder
+        .layer(tower::util::MapRequestLayer::new(tag_method))
         .add_service(health_service)
         .add_service(workers)
         .add_service(clients)

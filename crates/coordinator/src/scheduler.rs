@@ -43,6 +43,11 @@ pub struct Config {
     pub lease: Duration,
     /// How often workers poll while busy.
     pub poll: Duration,
+    /// A worker that has not polled for this long is taken for dead: its leases go to other
+    /// workers at once, without waiting for them to lapse. Many poll intervals, so a busy
+    /// host's hiccup is not taken for a death; one that was is harmless (a worker that comes
+    /// back registers again and its late reports change nothing committed).
+    pub worker_timeout: Duration,
     /// Fast PSS: cells per worker thread in one lease, for tangent-map methods (whose
     /// threads run `executor::LANES` orbits at a time); adaptive methods get it scaled by
     /// the orbits a thread runs at once (`run::adaptive_orbits_per_thread`: one, or the
@@ -60,11 +65,15 @@ pub struct Config {
 /// (24 runs) 80 times over; about 0.8 GB of ledgers at most.
 pub const MAX_CELL_RUNS: usize = 32_000_000;
 
+/// Default of [`Config::worker_timeout`]: 25 polls of a busy worker.
+pub const DEFAULT_WORKER_TIMEOUT: Duration = Duration::from_secs(5);
+
 impl Default for Config {
     fn default() -> Self {
         Config {
             lease: Duration::from_secs(30),
             poll: Duration::from_millis(200),
+            worker_timeout: DEFAULT_WORKER_TIMEOUT,
             lease_cells_per_thread: 2 * salient_grid::executor::LANES,
             max_cells: spec::MAX_CELLS,
             max_cell_runs: MAX_CELL_RUNS,
@@ -203,7 +212,11 @@ fn now_ms() -> i64 {
 
 fn store_err(e: StoreError) -> Status {
     tracing::error!(error = %e, "store failure");
-    Status::internal(format!("store: {e}"))
+    match e {
+        // The message says what is damaged and what to do; it is the client's to read.
+        StoreError::Damaged(_) => Status::data_loss(e.to_string()),
+        _ => Status::internal(e.to_string()),
+    }
 }
 
 fn tile_ref(key: TileKey, attempt: u32) -> v1::TileRef {
@@ -328,6 +341,8 @@ pub struct Scheduler {
     /// Distinguishes this process's worker ids from a previous coordinator's on the same store:
     /// a worker still holding an old id must get NOT_FOUND, never another worker's identity.
     epoch: u64,
+    /// When [`Scheduler::tick`] last ran.
+    last_tick: Instant,
 }
 
 impl Scheduler {
@@ -348,6 +363,7 @@ impl Scheduler {
             epoch: SystemTime::now()
                 .duration_since(UNIX_EPOCH)
                 .map_or(0, |d| d.as_nanos() as u64),
+            last_tick: Instant::now(),
         };
         let rows = s.store.unfinished_jobs().map_err(|e| e.to_string())?;
         for row in rows {
@@ -1113,9 +1129,35 @@ impl Scheduler {
         }
     }
 
-    /// Lapses expired leases and forgets workers silent for three lease periods.
+    /// Lapses expired leases and forgets workers silent for [`Config::worker_timeout`], so
+    /// their leases go to others.
+    ///
+    /// Silence is measured in time this process ran: when ticks stop for a while (the process
+    /// was stopped, its host suspended, or the loop busy for long), nobody could be answered
+    /// meanwhile, so the silence of workers and the age of leases count again from now.
     pub fn tick(&mut self) {
         let now = Instant::now();
+        let gap = now.duration_since(self.last_tick);
+        self.last_tick = now;
+        if gap > self.cfg.worker_timeout / 2 {
+            tracing::warn!(
+                paused_s = gap.as_secs_f64(),
+                "the coordinator did not run for a while; worker silence counts from now"
+            );
+            for w in self.workers.values_mut() {
+                w.last_seen = now;
+            }
+            for tile in self
+                .jobs
+                .values_mut()
+                .flat_map(|j| j.runs.iter_mut())
+                .flat_map(|r| r.tiles.iter_mut())
+            {
+                if let Some(l) = tile.lease.as_mut() {
+                    l.deadline += gap;
+                }
+            }
+        }
         for job in self.jobs.values_mut() {
             for (r, run) in job.runs.iter_mut().enumerate() {
                 for (t, tile) in run.tiles.iter_mut().enumerate() {
@@ -1133,7 +1175,7 @@ impl Scheduler {
         let silent: Vec<String> = self
             .workers
             .iter()
-            .filter(|(_, w)| now.duration_since(w.last_seen) > 3 * self.cfg.lease)
+            .filter(|(_, w)| now.duration_since(w.last_seen) > self.cfg.worker_timeout)
             .map(|(id, _)| id.clone())
             .collect();
         for id in silent {
@@ -1142,7 +1184,8 @@ impl Scheduler {
                 .get(&id)
                 .map(|w| w.name.clone())
                 .unwrap_or_default();
-            tracing::warn!(worker = %id, name = %name, "worker silent; forgotten");
+            let leases = self.workers.get(&id).map_or(0, |w| w.leases.len());
+            tracing::warn!(worker = %id, name = %name, leases, "worker silent; taken for dead, its leases go to others");
             self.drop_worker(&id);
         }
     }

@@ -25,6 +25,7 @@
 //! CPU times and counters saturate at `i64::MAX` (292 years of CPU time), which keeps SQL sums
 //! over them exact.
 
+mod access;
 mod error;
 mod schema;
 
@@ -138,6 +139,24 @@ pub struct RunTotals {
 /// coordinator's single event loop owns it.
 pub struct Store {
     conn: Connection,
+    /// The database's path (or ":memory:"), named in errors about its contents.
+    label: String,
+}
+
+/// SQLite's own findings of damage (`SQLITE_CORRUPT`, `SQLITE_NOTADB`) as
+/// [`StoreError::Damaged`], which says what to do; any other error as it is.
+fn damaged_if_corrupt(e: StoreError, label: &str) -> StoreError {
+    match &e {
+        StoreError::Sqlite(rusqlite::Error::SqliteFailure(f, _))
+            if matches!(
+                f.code,
+                rusqlite::ErrorCode::DatabaseCorrupt | rusqlite::ErrorCode::NotADatabase
+            ) =>
+        {
+            StoreError::damaged(label, &e.to_string())
+        }
+        _ => e,
+    }
 }
 
 /// A `u64` job id as SQLite sees it. Ids beyond `i64::MAX` cannot exist (AUTOINCREMENT), so
@@ -216,9 +235,19 @@ impl Store {
     /// Fails with [`StoreError::Schema`] when the file's schema version is newer than
     /// [`SCHEMA_VERSION`] (written by a newer build; reading it could lose data) or when WAL
     /// cannot be enabled (e.g. a file system without shared memory support).
+    ///
+    /// Refused at once, with [`StoreError::Access`], when the file or its folder cannot be
+    /// written (SQLite would open a read-only file read-only and fail at the first write), and
+    /// with [`StoreError::Damaged`] when the file is not a database or SQLite's quick check
+    /// finds it damaged. A new file is created readable and writable by its owner only; SQLite
+    /// gives its WAL and shared-memory files the same permissions.
     pub fn open(path: &Path) -> Result<Store> {
+        let label = path.display().to_string();
+        access::check_writable(path, &label)?;
         let conn = Connection::open(path)?;
-        Self::setup(conn, &path.display().to_string(), true)
+        let store = Self::setup(conn, &label, true).map_err(|e| damaged_if_corrupt(e, &label))?;
+        store.quick_check()?;
+        Ok(store)
     }
 
     /// A private in-memory database with the same schema (for tests and throwaway runs). Its
@@ -247,7 +276,28 @@ impl Store {
         // Per connection and off by default in SQLite; must be set outside a transaction.
         conn.pragma_update(None, "foreign_keys", "ON")?;
         schema::migrate(&mut conn, label)?;
-        Ok(Store { conn })
+        Ok(Store {
+            conn,
+            label: label.to_string(),
+        })
+    }
+
+    /// SQLite's quick check (every page and index entry well formed, no free-list damage;
+    /// linear in the file's size): the store is refused when it reports anything.
+    fn quick_check(&self) -> Result<()> {
+        let mut stmt = self.conn.prepare("PRAGMA quick_check")?;
+        let problems: Vec<String> = stmt
+            .query_map([], |row| row.get::<_, String>(0))?
+            .collect::<rusqlite::Result<_>>()
+            .map_err(|e| damaged_if_corrupt(e.into(), &self.label))?;
+        if problems.len() == 1 && problems[0] == "ok" {
+            return Ok(());
+        }
+        let shown: Vec<&str> = problems.iter().take(3).map(String::as_str).collect();
+        Err(StoreError::damaged(
+            &self.label,
+            &format!("SQLite's quick check: {}", shown.join("; ")),
+        ))
     }
 
     /// New job in state Queued; ids increase and are never reused (AUTOINCREMENT).
@@ -381,12 +431,13 @@ impl Store {
             ])?;
             let report_id = tx.last_insert_rowid();
             let mut insert = tx.prepare_cached(
-                "INSERT OR IGNORE INTO outcomes (job, run, cell, report, data)
-                 VALUES (?1, ?2, ?3, ?4, ?5)",
+                "INSERT OR IGNORE INTO outcomes (job, run, cell, report, data, checksum)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
             )?;
             let mut new = 0usize;
-            for (cell, data) in report.outcomes {
-                new += insert.execute(params![job, report.run, cell, report_id, data])?;
+            for &(cell, data) in report.outcomes {
+                let sum = schema::checksum(job, report.run, cell, data);
+                new += insert.execute(params![job, report.run, cell, report_id, data, sum])?;
             }
             tx.prepare_cached("UPDATE reports SET new_outcomes = ?2 WHERE id = ?1")?
                 .execute(params![report_id, amount_to_sql(new as u64)])?;
@@ -396,18 +447,35 @@ impl Store {
         Ok(new)
     }
 
-    /// The outcomes of a run in the order they were first stored.
+    /// The outcomes of a run in the order they were first stored, each verified against its
+    /// checksum: one that fails it makes the call fail with [`StoreError::Damaged`], naming the
+    /// cell, so a damaged outcome is never served.
     pub fn outcomes(&self, job: u64, run: u32) -> Result<Vec<StoredOutcome>> {
         let mut stmt = self.conn.prepare_cached(
-            "SELECT cell, data FROM outcomes WHERE job = ?1 AND run = ?2 ORDER BY seq",
+            "SELECT cell, data, checksum FROM outcomes WHERE job = ?1 AND run = ?2 ORDER BY seq",
         )?;
-        let rows = stmt.query_map(params![id_to_sql(job), run], |row| {
-            Ok(StoredOutcome {
-                cell: row.get(0)?,
-                data: row.get(1)?,
+        let job_sql = id_to_sql(job);
+        let rows = stmt
+            .query_map(params![job_sql, run], |row| {
+                Ok((
+                    row.get::<_, u32>(0)?,
+                    row.get::<_, Vec<u8>>(1)?,
+                    row.get(2)?,
+                ))
             })
-        })?;
-        Ok(rows.collect::<rusqlite::Result<Vec<_>>>()?)
+            .and_then(|rows| rows.collect::<rusqlite::Result<Vec<(u32, Vec<u8>, Option<i64>)>>>())
+            .map_err(|e| damaged_if_corrupt(e.into(), &self.label))?;
+        let mut out = Vec::with_capacity(rows.len());
+        for (cell, data, sum) in rows {
+            if sum != Some(schema::checksum(job_sql, run, cell, &data)) {
+                return Err(StoreError::damaged(
+                    &self.label,
+                    &format!("the outcome of job {job} run {run} cell {cell} fails its checksum"),
+                ));
+            }
+            out.push(StoredOutcome { cell, data });
+        }
+        Ok(out)
     }
 
     /// CPU time, number of reports and number of stored outcomes of a run; zeros for a run

@@ -7,7 +7,7 @@ use crate::{Result, StoreError};
 
 /// The schema version this build writes and understands. A database with a larger
 /// `user_version` was written by a newer build and is refused rather than misread.
-pub const SCHEMA_VERSION: i32 = 2;
+pub const SCHEMA_VERSION: i32 = 3;
 
 /// `MIGRATIONS[v]` takes a database from version `v` to `v + 1`; version 0 is an empty (new)
 /// database. Append to this list; never edit a step that has shipped.
@@ -87,7 +87,45 @@ const MIGRATIONS: &[&str] = &[
     ) WITHOUT ROWID;
     INSERT OR IGNORE INTO meta (key, value) VALUES ('instance', lower(hex(randomblob(16))));
     "#,
+    // 2 -> 3: a checksum per outcome (see `checksum`), verified whenever outcomes are loaded,
+    // so a damaged byte is refused rather than served. Rows stored before have theirs
+    // computed by `fill_checksums` in the same transaction.
+    r#"
+    ALTER TABLE outcomes ADD COLUMN checksum INTEGER;
+    "#,
 ];
+
+/// The checksum of an outcome as stored: 64-bit FNV-1a over the job, run and cell it belongs
+/// to and its bytes. Every step of FNV-1a is a bijection of its state for a fixed input byte,
+/// so any one changed byte, and any outcome moved to another cell, changes the sum.
+pub(crate) fn checksum(job: i64, run: u32, cell: u32, data: &[u8]) -> i64 {
+    const OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
+    const PRIME: u64 = 0x0000_0100_0000_01b3;
+    let key = job
+        .to_le_bytes()
+        .into_iter()
+        .chain(run.to_le_bytes())
+        .chain(cell.to_le_bytes());
+    let sum = key
+        .chain(data.iter().copied())
+        .fold(OFFSET, |h, b| (h ^ u64::from(b)).wrapping_mul(PRIME));
+    sum as i64
+}
+
+/// Computes the checksum of every outcome that has none (those stored by schema version 2).
+fn fill_checksums(tx: &Connection) -> rusqlite::Result<()> {
+    let rows: Vec<(i64, i64, u32, u32, Vec<u8>)> = tx
+        .prepare("SELECT seq, job, run, cell, data FROM outcomes WHERE checksum IS NULL")?
+        .query_map([], |r| {
+            Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?))
+        })?
+        .collect::<rusqlite::Result<_>>()?;
+    let mut update = tx.prepare("UPDATE outcomes SET checksum = ?2 WHERE seq = ?1")?;
+    for (seq, job, run, cell, data) in rows {
+        update.execute(rusqlite::params![seq, checksum(job, run, cell, &data)])?;
+    }
+    Ok(())
+}
 
 /// Brings the database behind `conn` to [`SCHEMA_VERSION`], or refuses it when it is newer.
 /// `label` names the database (its path) in errors.
@@ -111,6 +149,9 @@ pub(crate) fn migrate(conn: &mut Connection, label: &str) -> Result<()> {
     // `found` is in 0..=SCHEMA_VERSION here, so the casts below are lossless.
     for (step, sql) in MIGRATIONS.iter().enumerate().skip(found as usize) {
         tx.execute_batch(sql)?;
+        if step + 1 == 3 {
+            fill_checksums(&tx)?;
+        }
         tx.pragma_update(None, "user_version", step as i32 + 1)?;
     }
     tx.commit()?;

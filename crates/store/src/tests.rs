@@ -177,3 +177,159 @@ fn existing_current_database_is_not_migrated_again() {
         .unwrap();
     assert_eq!(version, SCHEMA_VERSION);
 }
+
+/// A file store holding one job with one report whose outcomes are `payloads` (cells 0, 1, ...).
+fn store_with_outcomes(payloads: &[&[u8]]) -> (tempfile::TempDir, std::path::PathBuf, u64) {
+    let (dir, path, mut store) = new_file_store();
+    let job = store.insert_job("j", "spec", 1).unwrap();
+    let outcomes: Vec<(u32, &[u8])> = (0..).zip(payloads.iter().copied()).collect();
+    store
+        .commit_report(&Report {
+            job,
+            run: 0,
+            tile: 0,
+            attempt: 1,
+            worker: "w",
+            cpu_ns: 1,
+            outcomes: &outcomes,
+        })
+        .unwrap();
+    // Closing the last connection checkpoints the WAL into the database file.
+    drop(store);
+    (dir, path, job)
+}
+
+/// Flips one bit of every copy of `pattern` in the file (SQLite may leave stale copies of a
+/// row in free space; the live one is among them).
+fn flip_byte_of(path: &Path, pattern: &[u8]) {
+    let mut bytes = std::fs::read(path).unwrap();
+    let at: Vec<usize> = bytes
+        .windows(pattern.len())
+        .enumerate()
+        .filter(|(_, w)| *w == pattern)
+        .map(|(k, _)| k)
+        .collect();
+    assert!(!at.is_empty(), "the payload is in the database file");
+    for k in at {
+        bytes[k + pattern.len() / 2] ^= 0x04;
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+#[test]
+fn a_flipped_byte_in_an_outcome_is_refused_when_loaded() {
+    let payloads: [&[u8]; 2] = [
+        b"first-outcome-payload-0123",
+        b"second-outcome-payload-4567",
+    ];
+    let (_dir, path, job) = store_with_outcomes(&payloads);
+    assert_eq!(
+        Store::open(&path).unwrap().outcomes(job, 0).unwrap().len(),
+        2
+    );
+    flip_byte_of(&path, payloads[1]);
+    // The page structure is intact, so the store opens; the outcome itself is refused.
+    let store = Store::open(&path).unwrap();
+    let err = store.outcomes(job, 0).unwrap_err();
+    let text = err.to_string();
+    assert!(matches!(err, StoreError::Damaged(_)), "{text}");
+    assert!(text.contains(&path.display().to_string()), "{text}");
+    assert!(text.contains("cell 1 fails its checksum"), "{text}");
+}
+
+#[test]
+fn a_truncated_database_is_refused_at_open_naming_the_file() {
+    let payloads: Vec<Vec<u8>> = (0..400)
+        .map(|k| format!("outcome-{k:05}-").repeat(8).into_bytes())
+        .collect();
+    let refs: Vec<&[u8]> = payloads.iter().map(Vec::as_slice).collect();
+    let (_dir, path, _) = store_with_outcomes(&refs);
+    let len = std::fs::metadata(&path).unwrap().len();
+    assert!(
+        len > 4 * 4096,
+        "the database spans several pages ({len} bytes)"
+    );
+    let file = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+    file.set_len(len / 2).unwrap();
+    drop(file);
+    let err = Store::open(&path)
+        .err()
+        .expect("a truncated database is refused");
+    let text = err.to_string();
+    assert!(matches!(err, StoreError::Damaged(_)), "{text}");
+    assert!(text.contains(&path.display().to_string()), "{text}");
+    assert!(text.contains("restore it from a backup"), "{text}");
+}
+
+#[test]
+fn outcomes_stored_before_checksums_get_theirs_on_migration() {
+    let (_dir, path, job) = store_with_outcomes(&[b"old-a", b"old-b"]);
+    // Make it a version-2 database: no checksum column.
+    let raw = Connection::open(&path).unwrap();
+    raw.execute_batch("ALTER TABLE outcomes DROP COLUMN checksum; PRAGMA user_version = 2;")
+        .unwrap();
+    drop(raw);
+    let store = Store::open(&path).unwrap();
+    let loaded = store.outcomes(job, 0).unwrap();
+    assert_eq!(loaded.len(), 2);
+    assert_eq!(loaded[1].data, b"old-b");
+}
+
+#[cfg(unix)]
+#[test]
+fn a_new_database_and_its_wal_are_readable_by_their_owner_only() {
+    use std::os::unix::fs::PermissionsExt;
+    let (_dir, path, mut store) = new_file_store();
+    store.insert_job("j", "spec", 1).unwrap();
+    for file in [path.clone(), path.with_extension("db-wal")] {
+        let mode = std::fs::metadata(&file).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, 0o600, "{}", file.display());
+    }
+}
+
+#[test]
+fn a_database_in_a_missing_folder_is_refused_at_open() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("absent").join("state.db");
+    let err = Store::open(&path).err().expect("refused");
+    assert!(matches!(err, StoreError::Access(_)), "{err}");
+    assert!(
+        err.to_string().contains("does not accept new files"),
+        "{err}"
+    );
+}
+
+#[cfg(unix)]
+#[test]
+fn read_only_databases_and_folders_are_refused_at_open() {
+    use std::os::unix::fs::PermissionsExt;
+    let (dir, path, store) = new_file_store();
+    drop(store);
+    let set = |p: &Path, mode: u32| {
+        std::fs::set_permissions(p, std::fs::Permissions::from_mode(mode)).unwrap()
+    };
+    set(&path, 0o400);
+    if std::fs::OpenOptions::new().write(true).open(&path).is_ok() {
+        // Root (or CAP_DAC_OVERRIDE) writes whatever the mode says: nothing to refuse here.
+        // The command-line tests run the coordinator as an unprivileged user for this case.
+        eprintln!("skipped: this process may write read-only files");
+        return;
+    }
+    let err = Store::open(&path)
+        .err()
+        .expect("a read-only file is refused");
+    assert!(
+        err.to_string().contains("cannot be opened for writing"),
+        "{err}"
+    );
+    set(&path, 0o600);
+    set(dir.path(), 0o500);
+    let err = Store::open(&path)
+        .err()
+        .expect("a read-only folder is refused");
+    set(dir.path(), 0o700);
+    assert!(
+        err.to_string().contains("does not accept new files"),
+        "{err}"
+    );
+}

@@ -5,6 +5,9 @@
 //! outbox until acknowledged, so they survive a coordinator restart; on drain it finishes the
 //! leases it started, releases the ones not started, and deregisters.
 
+mod explain;
+
+pub use explain::explain_transport;
 use salient_grid::executor::{integrate_stream, CellSource, LocalLedger, Take, Verdict};
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::Outcome;
@@ -33,6 +36,9 @@ pub struct Options {
     /// Leases held at once: one in progress and the rest ready, so the pool need not wait on
     /// the network (fast-PSS leases are held one at a time, see [`free_slots`]).
     pub max_leases: usize,
+    /// How long a drain may take: past it the worker stops whatever it still holds (a
+    /// coordinator that is gone cannot take its reports; its leases go to others anyway).
+    pub drain_timeout: Duration,
 }
 
 /// Leases to ask for: up to `max` held, but one at a time while the last lease was fast PSS
@@ -128,6 +134,9 @@ const POLL_REPORT_BYTES: usize = 4 << 20;
 /// was lost with a coordinator that stopped before committing it (a restart is caught
 /// sooner, by its NOT_FOUND).
 const UNANSWERED_RESEND: Duration = Duration::from_secs(10);
+
+/// How long a stopping worker waits for the coordinator to take its leave.
+const DEREGISTER_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// A lease handed to the compute thread.
 struct Work {
@@ -702,7 +711,7 @@ async fn register(client: &mut Client, opts: &Options) -> Result<v1::RegisterRep
                     Code::Unavailable | Code::Unknown | Code::Cancelled | Code::DeadlineExceeded
                 ) =>
             {
-                tracing::warn!(coordinator = %opts.coordinator, error = %e.message(), retry_in_ms = backoff.as_millis() as u64, "coordinator unreachable");
+                tracing::warn!(coordinator = %opts.coordinator, error = %explain_transport(&opts.coordinator, &e), retry_in_ms = backoff.as_millis() as u64, "coordinator unreachable");
                 tokio::time::sleep(backoff).await;
                 backoff = (backoff * 2).min(Duration::from_secs(5));
             }
@@ -736,9 +745,75 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
     };
 
     let mut client = connect(&opts).await?;
-    let mut reg = register(&mut client, &opts).await?;
-    let mut specs: HashMap<u64, (String, Arc<JobSpec>)> = HashMap::new();
+    // The drain signal goes to the lease loop and to the drain deadline both.
+    let (drain_tx, drain_rx) = tokio::sync::watch::channel(false);
+    let mut reg: Option<v1::RegisterReply> = None;
     let mut held: Vec<v1::TileRef> = Vec::new();
+    let mut released: Vec<v1::TileRef> = Vec::new();
+    let lease_loop = lease_loop(
+        &opts,
+        &mut client,
+        &mut reg,
+        &mut held,
+        &mut released,
+        (&signals, &draining),
+        (&work_tx, &mut done_rx),
+        drain_rx,
+    );
+    let drained_in_time = tokio::select! {
+        r = lease_loop => { r?; true }
+        _ = async {
+            drain.await;
+            let _ = drain_tx.send(true);
+            tokio::time::sleep(opts.drain_timeout).await;
+        } => false,
+    };
+    drop(work_tx);
+    if !drained_in_time {
+        tracing::warn!(
+            drain_timeout_s = opts.drain_timeout.as_secs_f64(),
+            held = held.len(),
+            "drain deadline passed; stopping with leases unfinished (the coordinator gives them to others)"
+        );
+        released.append(&mut held);
+    }
+    if let Some(reg) = &reg {
+        // Bounded: a coordinator that is gone would keep this waiting.
+        let _ = tokio::time::timeout(
+            DEREGISTER_TIMEOUT,
+            client.deregister(v1::DeregisterRequest {
+                worker_id: reg.worker_id.clone(),
+                released,
+            }),
+        )
+        .await;
+    }
+    if drained_in_time {
+        let _ = tokio::task::spawn_blocking(move || compute.join()).await;
+    }
+    tracing::info!("worker stopped");
+    Ok(())
+}
+
+/// Registers, then polls for leases, hands them to the compute thread and reports what it
+/// computes, until the drain signal came and nothing is held or owed any more.
+#[allow(clippy::too_many_arguments)]
+async fn lease_loop(
+    opts: &Options,
+    client: &mut Client,
+    reg_slot: &mut Option<v1::RegisterReply>,
+    held: &mut Vec<v1::TileRef>,
+    released: &mut Vec<v1::TileRef>,
+    (signals, draining): (&Arc<Mutex<Signals>>, &Arc<AtomicBool>),
+    (work_tx, done_rx): (
+        &std::sync::mpsc::Sender<Work>,
+        &mut mpsc::UnboundedReceiver<Done>,
+    ),
+    mut drain_rx: tokio::sync::watch::Receiver<bool>,
+) -> Result<(), String> {
+    let mut reg = register(client, opts).await?;
+    *reg_slot = Some(reg.clone());
+    let mut specs: HashMap<u64, (String, Arc<JobSpec>)> = HashMap::new();
     let mut one_at_a_time = true;
     let mut hungry_compute = false;
     let mut outbox: Vec<v1::TileReport> = Vec::new();
@@ -747,9 +822,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
     // reply, in the order the reports came: each answer for a lease is the answer to the
     // oldest report of that lease waiting here.
     let mut awaiting: VecDeque<(std::time::Instant, v1::TileReport)> = VecDeque::new();
-    let mut released: Vec<v1::TileRef> = Vec::new();
     let mut backoff = Duration::from_millis(100);
-    tokio::pin!(drain);
     let mut drain_seen = false;
     // A worker with free slots and nothing leased polls soon again (the frontier moves as
     // others report), backing off to the coordinator's interval while nothing comes.
@@ -767,7 +840,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
             busy
         };
         tokio::select! {
-            _ = &mut drain, if !drain_seen => {
+            _ = drain_rx.wait_for(|&d| d), if !drain_seen => {
                 drain_seen = true;
                 draining.store(true, Ordering::Relaxed);
                 tracing::info!(held = held.len(), "draining: finishing the lease in progress, releasing the rest");
@@ -778,7 +851,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 while let Some(d) = next.take().or_else(|| done_rx.try_recv().ok()) {
                     match d {
                         Done::Report(r) => {
-                            collect_partial(&signals, &held, &mut outbox);
+                            collect_partial(signals, held, &mut outbox);
                             // Reports of leases revoked or forgotten meanwhile are stale.
                             if !held.iter().any(|h| Some(h) == r.lease.as_ref()) {
                                 continue;
@@ -800,7 +873,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
         }
         let draining_now = draining.load(Ordering::Relaxed);
         if draining_now && held.is_empty() && outbox.is_empty() && awaiting.is_empty() {
-            break;
+            return Ok(());
         }
         // Answers are normally one poll behind; ones missing for long were lost (a
         // coordinator that failed before committing them): send those reports again.
@@ -813,7 +886,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
             tracing::warn!(lease = ?r.lease, "report not acknowledged; resending");
             outbox.insert(0, r);
         }
-        collect_partial(&signals, &held, &mut outbox);
+        collect_partial(signals, held, &mut outbox);
         let req = v1::PollRequest {
             worker_id: reg.worker_id.clone(),
             free_slots: if draining_now {
@@ -951,7 +1024,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                 // The coordinator restarted and forgot us: register again, keep the outbox
                 // and the leases; the next poll resends and re-adopts them.
                 tracing::warn!(error = %e.message(), "coordinator does not know this worker");
-                let again = register(&mut client, &opts).await?;
+                let again = register(client, opts).await?;
                 // What it had not committed is gone with it: everything unanswered goes again.
                 for (_, r) in awaiting.drain(..).rev() {
                     outbox.insert(0, r);
@@ -976,6 +1049,7 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
                     s.ledgers.clear();
                     s.made.clear();
                 }
+                *reg_slot = Some(again.clone());
                 reg = again;
             }
             Err(e) if e.code() == Code::InvalidArgument && sent > 0 => {
@@ -1006,16 +1080,6 @@ pub async fn run(opts: Options, drain: impl Future<Output = ()>) -> Result<(), S
             }
         }
     }
-    drop(work_tx);
-    let _ = client
-        .deregister(v1::DeregisterRequest {
-            worker_id: reg.worker_id.clone(),
-            released,
-        })
-        .await;
-    let _ = tokio::task::spawn_blocking(move || compute.join()).await;
-    tracing::info!("worker stopped");
-    Ok(())
 }
 
 #[cfg(test)]
