@@ -1,6 +1,6 @@
-/* A plain single-threaded C implementation of the fast-PSS rule of DESIGN.md for Hénon–Heiles
- * with the TM-SBAB2C tangent map: the yardstick that issue 4's speed aims are stated against
- * ("a straightforward single-threaded C implementation of the same rule"). It exists to
+/* A plain single-threaded C implementation of the fast-PSS rule (docs/methods.md) for
+ * Hénon–Heiles with the TM-SBAB2C tangent map: the yardstick the speed targets of
+ * docs/performance.md are stated against. It exists to
  * calibrate a host: `salient run` is compared with it side by side on the same machine
  * (scripts/bench-plain-c.sh), so a figure measured on one host can be read on another.
  *

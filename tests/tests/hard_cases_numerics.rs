@@ -30,7 +30,7 @@ use std::time::Instant;
 /// The sticky orbit C2 of the seed paper.
 const C2: (f64, f64) = (0.335036, -0.385631);
 
-/// The Lyapunov exponent of the chaotic sea at H = 1/8 (research note §7.4).
+/// The Lyapunov exponent of the chaotic sea at H = 1/8 (SRKN14a τ = 0.1, t = 1e7).
 const MLE_SEA: f64 = 0.045;
 
 /// Runs `method` (a CLI name) on the orbit through `x` and returns the result with the wall
@@ -135,7 +135,7 @@ fn sticky_c2_looks_regular_at_1e5() {
 }
 
 /// C2 to t = 1e7 with the early stop: it stays regular-looking past 1e6 and then becomes
-/// chaotic. Measured: SALI < 1e-8 first at t = 5 211 397.6 (1.04e8 steps, ≈ 3 s).
+/// chaotic. Measured: SALI < 1e-8 first at t = 5 211 397.6 (1.04e8 steps).
 #[test]
 #[ignore = "long: C2 to t = 1e7 (≈ 1e8 steps); run by scripts/stability.sh"]
 fn sticky_c2_becomes_chaotic_by_1e7() {
@@ -599,7 +599,7 @@ fn section_boundary_crossings_are_located_consistently_across_methods() {
 
 /// TM-SBAB2C, τ = 0.5, R1 to t = 5e7: exactly 1e8 steps to exactly t = 5e7, and the energy
 /// error's envelope over [1e7, 5e7] is the one over [1e6, 5e6] (no secular drift). 1e8 steps
-/// take ≈ 3.7 s (37 ns a step with the energy evaluated every step), so this is a normal test.
+/// take a few seconds, so this is a normal test (figures: docs/performance.md).
 #[test]
 fn hundred_million_steps_exact_time_and_no_energy_drift() {
     let (res, wall) = run(
@@ -752,8 +752,8 @@ fn renormalisation_interval_does_not_change_the_indicators() {
 
 /// Renormalisation intervals far beyond the growth f64 can hold: inside one interval ‖w‖
 /// grows by e^(λτ), and ‖w‖² would overflow once ln‖w‖ > ln √(f64::MAX) ≈ 354.9, i.e. for
-/// τ ≳ 6 000–8 000 on C1. `restart` renormalises early when a vector leaves the band (before
-/// that fix it ended `non-finite` at t = 6 020 / 7 915); `free` renormalises at every step end.
+/// τ ≳ 6 000–8 000 on C1. `restart` renormalises early when a vector leaves the band (without
+/// that it would end `non-finite` at t = 6 020 / 7 915); `free` renormalises at every step end.
 /// Both stay finite (τ = 1e4 and 1e5 here, where e^(λτ) would overflow f64 itself).
 #[test]
 fn huge_tau_keeps_deviation_vectors_finite_in_both_protocols() {
@@ -767,8 +767,8 @@ fn huge_tau_keeps_deviation_vectors_finite_in_both_protocols() {
             &no_early_stop(1e4, 2e4),
             &req,
         );
-        // Without renormalising inside the interval the squared norm overflowed at t = 6 020
-        // (DOP853) and 7 915 (Taylor); the restart driver now renormalises early when a
+        // Without renormalising inside the interval the squared norm would overflow at
+        // t = 6 020 (DOP853) and 7 915 (Taylor); the restart driver renormalises early when a
         // vector leaves [2^-256, 2^256] in squared norm.
         assert_eq!(res.status, Status::Ok, "{method}");
         assert_eq!(res.t_reached, 2e4);

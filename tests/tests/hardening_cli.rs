@@ -510,3 +510,44 @@ fn a_worker_stopped_while_its_coordinator_is_unresponsive_exits_within_its_drain
     assert!(status.success(), "{status:?}: {log}");
     assert!(log.contains("worker stopped"), "{log}");
 }
+
+#[test]
+fn submit_wait_prints_the_job_with_its_results_and_writes_only_where_told() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let spec = full_spec(d, "waited", 12, 6, 100.0);
+    let (_c, url) = coordinator(d, "127.0.0.1:0", "coordinator.log");
+    let _w = worker(d, &url, 1);
+    let cwd = d.join("cwd");
+    std::fs::create_dir(&cwd).unwrap();
+    let submit = |extra: &[&str]| {
+        let mut cmd = Command::new(salient_path());
+        cmd.args(["submit", &spec, "--wait", "--json", "--coordinator", &url])
+            .args(extra)
+            .env("SALIENT_TOKEN", salient_tests::cluster::TOKEN)
+            .current_dir(&cwd);
+        json_stdout(&output_within(&mut cmd, Duration::from_secs(120)))
+    };
+    let v = submit(&[]);
+    assert!(v["job"].as_u64().is_some(), "{v}");
+    assert_eq!(v["runs"].as_array().unwrap().len(), 1, "{v}");
+    assert_eq!(
+        std::fs::read_dir(&cwd).unwrap().count(),
+        0,
+        "submit --wait without --out wrote files"
+    );
+    let out = d.join("written");
+    let v = submit(&["--out", out.to_str().unwrap()]);
+    assert!(v["job"].as_u64().is_some(), "{v}");
+    assert!(out.join("table.md").exists());
+    let job = v["job"].as_u64().unwrap().to_string();
+    let again = json_stdout(&client(
+        &["results", &job, "--json", "--out", out.to_str().unwrap()],
+        &url,
+    ));
+    assert_eq!(again["job"], v["job"]);
+
+    let missing = client(&["results", "99"], &url);
+    assert_eq!(missing.status.code(), Some(2));
+    assert_eq!(stderr(&missing).trim(), "error: no job 99");
+}

@@ -306,3 +306,69 @@ fn taylor_and_taylor_dd_run_and_dd_reaches_extended_precision() {
     let e = v["energy_error_max"].as_f64().unwrap();
     assert!(e < 1e-20 && e > 0.0, "taylor-dd |ΔH/H| = {e:e}");
 }
+
+#[test]
+fn people_read_rounded_numbers_and_warnings_on_stderr() {
+    // C1 stops early at a time that is a sum of τ's: 370.20000000000005 in full.
+    let out = salient(&[
+        "orbit",
+        "--q2",
+        "-0.25",
+        "--p2",
+        "0",
+        "--method",
+        "tm-sbab2c",
+        "--t-final",
+        "1e4",
+        "--delta",
+        "1e-8",
+    ]);
+    assert!(out.status.success());
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let reached = stdout
+        .split("t_reached ")
+        .nth(1)
+        .and_then(|r| r.split_whitespace().next())
+        .unwrap_or_else(|| panic!("no t_reached in {stdout}"));
+    assert!(
+        reached.len() <= 8,
+        "t_reached {reached} is not rounded for people"
+    );
+    assert!(stdout.contains("t_final = 10000"), "{stdout}");
+    assert!(
+        !stdout.contains("warning") && !stdout.contains("ignored"),
+        "{stdout}"
+    );
+    assert!(stderr.contains("--delta is ignored"), "{stderr}");
+}
+
+#[test]
+fn series_csv_writes_tiny_numbers_in_scientific_notation() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("c1");
+    json_stdout(&salient(&[
+        "orbit",
+        "--q2",
+        "-0.25",
+        "--p2",
+        "0",
+        "--method",
+        "tm-sbab2c",
+        "--t-final",
+        "1e4",
+        "--json",
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    let csv = std::fs::read_to_string(out.join("series.csv")).unwrap();
+    let widest = csv
+        .lines()
+        .skip(1)
+        .flat_map(|l| l.split(','))
+        .map(str::len)
+        .max()
+        .unwrap();
+    assert!(widest <= 24, "a field of {widest} characters in series.csv");
+    assert!(csv.contains("e-"), "SALI falls below 1e-8: {csv}");
+}

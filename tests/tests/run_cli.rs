@@ -129,6 +129,12 @@ fn run_writes_the_contract_and_never_lists_incompatible_cells() {
     for f in ["table.md", "table.csv", "table.json"] {
         assert!(out.join(f).exists(), "{f}");
     }
+    // A tangent-map run has no δ: an empty CSV field, a dash in Markdown.
+    let table = std::fs::read_to_string(out.join("table.csv")).unwrap();
+    assert!(!table.contains('—'), "{table}");
+    assert!(std::fs::read_to_string(out.join("table.md"))
+        .unwrap()
+        .contains('—'));
     let csv = std::fs::read_to_string(run.join("cells.csv")).unwrap();
     let mut lines = csv.lines();
     assert_eq!(

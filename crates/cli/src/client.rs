@@ -3,6 +3,7 @@
 //! the same files as `salient run`, so both modes' outputs can be compared byte for byte.
 
 use crate::cluster::runtime_for;
+use crate::human::rounded;
 use crate::output::Staged;
 use crate::run::{write_run, write_sweep, RunResult};
 use crate::spec::{self, JobSpec};
@@ -56,7 +57,7 @@ pub struct SubmitArgs {
     /// Print exactly one JSON object on stdout.
     #[arg(long)]
     json: bool,
-    /// With --wait: also write the results' files here.
+    /// With --wait: also write the results' files here (without it, only the JSON summary).
     #[arg(long, requires = "wait")]
     out: Option<PathBuf>,
     /// Refuse specs whose grid holds more cells than this (the coordinator has its own cap).
@@ -77,6 +78,7 @@ pub struct StatusArgs {
 
 #[derive(Args, Debug)]
 pub struct JobArgs {
+    /// The job's id, as `salient submit` printed it.
     job: u64,
     #[command(flatten)]
     conn: Connection,
@@ -84,6 +86,7 @@ pub struct JobArgs {
 
 #[derive(Args, Debug)]
 pub struct ResultsArgs {
+    /// The job's id, as `salient submit` printed it.
     job: u64,
     #[command(flatten)]
     conn: Connection,
@@ -103,7 +106,9 @@ type Client = ClientServiceClient<InterceptedService<Channel, Token>>;
 /// A gRPC failure as a CLI error: bad input (unknown job, invalid spec) is exit 2.
 fn rpc_error(what: &str, e: tonic::Status) -> CliError {
     match e.code() {
-        Code::InvalidArgument | Code::NotFound | Code::FailedPrecondition => {
+        // "no job 99" says it all.
+        Code::NotFound => CliError::Usage(e.message().to_string()),
+        Code::InvalidArgument | Code::FailedPrecondition => {
             CliError::Usage(format!("{what}: {}", e.message()))
         }
         Code::Unauthenticated | Code::DataLoss => {
@@ -173,16 +178,10 @@ pub fn submit(args: SubmitArgs) -> CliResult<()> {
     for w in &job.warnings {
         tracing::warn!("{w}");
     }
-    // With --wait the output folder is checked (and staged) before the job is sent.
-    let staged = match args.wait {
-        true => {
-            let out = args
-                .out
-                .clone()
-                .unwrap_or_else(|| Path::new("out").join(&job.name));
-            Some((Staged::begin(&out, "--out")?, out))
-        }
-        false => None,
+    // With --out the output folder is checked (and staged) before the job is sent.
+    let staged = match &args.out {
+        Some(out) => Some((out.clone(), Staged::begin(out, "--out")?)),
+        None => None,
     };
     runtime_for(1)?.block_on(async {
         let mut client = connect(&args.conn).await?;
@@ -194,16 +193,16 @@ pub fn submit(args: SubmitArgs) -> CliResult<()> {
             .map_err(|e| rpc_error("submit", e))?
             .into_inner();
         tracing::info!(job = reply.job, name = %job.name, "submitted");
-        let Some((staged, out)) = staged else {
+        if !args.wait {
             if args.json {
                 println!("{}", serde_json::json!({ "job": reply.job }));
             } else {
                 println!("{}", reply.job);
             }
             return Ok(());
-        };
+        }
         wait_finished(&mut client, &args.conn.coordinator, reply.job).await?;
-        fetch_and_write(&mut client, reply.job, &out, staged, true).await
+        fetch_and_write(&mut client, reply.job, staged, true).await
     })
 }
 
@@ -356,7 +355,7 @@ impl Bars {
     fn show(&mut self, msg: &v1::JobStatus) {
         if !self.tty {
             for r in msg.runs.iter().filter(|r| !r.done && r.orbits > 0) {
-                tracing::info!(job = msg.job, run = %run_label(r), resolved = r.resolved, compatible = r.compatible, orbits = r.orbits, orbits_per_s = r.orbits_per_s, eta_s = r.eta_s.unwrap_or(f64::NAN), workers = msg.workers, "progress");
+                tracing::info!(job = msg.job, run = %run_label(r), resolved = r.resolved, compatible = r.compatible, orbits = r.orbits, orbits_per_s = rounded(r.orbits_per_s, 0), eta_s = rounded(r.eta_s.unwrap_or(f64::NAN), 1), workers = msg.workers, "progress");
             }
             return;
         }
@@ -524,7 +523,7 @@ pub fn results(args: ResultsArgs) -> CliResult<()> {
                 )));
             }
         }
-        fetch_and_write(&mut client, args.job, &out, staged, args.json).await
+        fetch_and_write(&mut client, args.job, Some((out, staged)), args.json).await
     })
 }
 
@@ -533,8 +532,7 @@ pub fn results(args: ResultsArgs) -> CliResult<()> {
 async fn fetch_and_write(
     client: &mut Client,
     job: u64,
-    out: &Path,
-    staged: Staged,
+    to: Option<(PathBuf, Staged)>,
     json: bool,
 ) -> CliResult<()> {
     use v1::results_chunk::Part;
@@ -600,10 +598,15 @@ async fn fetch_and_write(
             ledger,
             h.cpu_s,
             h.wall_s,
-            out,
+            to.as_ref().map_or(Path::new(""), |(out, _)| out.as_path()),
         );
-        write_run(&job_spec, &r, staged.path())?;
+        if let Some((_, staged)) = &to {
+            write_run(&job_spec, &r, staged.path())?;
+        }
         results.push(r);
     }
-    write_sweep(&results, out, staged, json)
+    match to {
+        Some((out, staged)) => write_sweep(&results, Some((&out, staged)), Some(job), json),
+        None => write_sweep(&results, None, Some(job), json),
+    }
 }

@@ -3,6 +3,7 @@
 
 mod client;
 mod cluster;
+mod human;
 mod orbit;
 mod output;
 mod precision;

@@ -1,5 +1,6 @@
 //! `salient orbit`: one orbit, its indicators, and (with `--out`) a time series and plots.
 
+use crate::human::{csv_number, human};
 use crate::output::Staged;
 use crate::usage::{finite, positive, runtime, CliError, CliResult};
 use clap::{Args, ValueEnum};
@@ -250,6 +251,10 @@ pub fn run(args: OrbitArgs) -> CliResult<()> {
         )?;
         staged.publish()?;
     }
+    // Warnings go to stderr; with --json they are also a field of the one object on stdout.
+    for w in summary["warnings"].as_array().into_iter().flatten() {
+        tracing::warn!("{}", w.as_str().unwrap_or(""));
+    }
     if args.json {
         println!("{summary}");
     } else {
@@ -310,19 +315,20 @@ fn summary_text(s: &Value) -> String {
             .map_or("—".to_string(), |v| format!("{v:.4e}"))
     };
     let mut t = String::new();
+    let plain = |k: &str| s[k].as_f64().map_or("—".to_string(), human);
     let _ = writeln!(
         t,
         "{}  τ = {}  t_final = {}",
         s["method"].as_str().unwrap_or(""),
-        s["tau"],
-        s["t_final"]
+        plain("tau"),
+        plain("t_final")
     );
     let _ = writeln!(
         t,
         "status {}  class {}  t_reached {}",
         s["status"].as_str().unwrap_or(""),
         s["class"].as_str().unwrap_or("—"),
-        s["t_reached"]
+        plain("t_reached")
     );
     let mut gali = String::new();
     if let Some(g) = s["gali"].as_object() {
@@ -349,11 +355,6 @@ fn summary_text(s: &Value) -> String {
         s["wall_s"].as_f64().unwrap_or(0.0),
         s["ns_per_step"].as_f64().unwrap_or(0.0)
     );
-    if let Some(w) = s["warnings"].as_array() {
-        for w in w {
-            let _ = writeln!(t, "warning: {}", w.as_str().unwrap_or(""));
-        }
-    }
     if let Some(d) = s["out_dir"].as_str() {
         let _ = writeln!(
             t,
@@ -382,11 +383,11 @@ fn write_outputs(
     }
     csv.push_str(",mle,energy_error\n");
     for s in &r.series {
-        let _ = write!(csv, "{},{}", s.t, s.sali);
-        for g in &s.gali {
-            let _ = write!(csv, ",{g}");
+        let _ = write!(csv, "{},{}", csv_number(s.t), csv_number(s.sali));
+        for &g in &s.gali {
+            let _ = write!(csv, ",{}", csv_number(g));
         }
-        let _ = writeln!(csv, ",{},{}", s.mle, s.energy_error);
+        let _ = writeln!(csv, ",{},{}", csv_number(s.mle), csv_number(s.energy_error));
     }
     write_file(&dir.join("series.csv"), &csv)?;
 
@@ -468,7 +469,11 @@ fn plot(p: &LogLogPlot, path: &Path, warnings: &mut Vec<String>) -> CliResult<()
     match render_loglog_png(p, path, 1000, 700) {
         Ok(()) => Ok(()),
         Err(ReportError::EmptyData(what)) => {
-            warnings.push(format!("{} not drawn: {what}", path.display()));
+            // The file's name only: `path` lies in the staging folder, gone once published.
+            let name = path
+                .file_name()
+                .map_or_else(String::new, |n| n.to_string_lossy().into());
+            warnings.push(format!("{name} not drawn: {what}"));
             Ok(())
         }
         Err(e) => Err(runtime(&format!("plotting {}", path.display()), e)),

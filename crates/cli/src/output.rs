@@ -30,6 +30,7 @@ impl Staged {
             ))
         };
         std::fs::create_dir_all(out).map_err(refuse)?;
+        remove_abandoned_stages(out);
         let stage = out.join(format!("{STAGING_PREFIX}{}", std::process::id()));
         // A folder of the same name is a leftover of an earlier process with this pid.
         if stage.exists() {
@@ -86,6 +87,30 @@ impl Drop for Staged {
     fn drop(&mut self) {
         if !self.published {
             let _ = std::fs::remove_dir_all(&self.stage);
+        }
+    }
+}
+
+/// Removes the staging folders that processes killed before they could clean up left in
+/// `out` (Ctrl-C, SIGKILL): those whose process is gone. Where the system does not tell which
+/// processes run (no `/proc`), they stay; they are hidden and never read.
+fn remove_abandoned_stages(out: &Path) {
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let Ok(entries) = std::fs::read_dir(out) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name.strip_prefix(STAGING_PREFIX) else {
+            continue;
+        };
+        let alive = pid
+            .parse::<u32>()
+            .map_or(true, |pid| Path::new(&format!("/proc/{pid}")).exists());
+        if !alive {
+            let _ = std::fs::remove_dir_all(entry.path());
         }
     }
 }
@@ -179,6 +204,20 @@ mod tests {
             std::fs::read_to_string(out.join("table.md")).unwrap(),
             "old"
         );
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    #[test]
+    fn a_stage_left_by_a_process_that_is_gone_is_removed() {
+        let out = scratch("abandoned");
+        // Pid numbers stop well below this one.
+        let gone = out.join(format!("{STAGING_PREFIX}4294967294"));
+        std::fs::create_dir_all(gone.join("run-a")).unwrap();
+        let staged = Staged::begin(&out, "--out").unwrap();
+        if Path::new("/proc/self").exists() {
+            assert!(!gone.exists());
+        }
+        staged.publish().unwrap();
         std::fs::remove_dir_all(&out).unwrap();
     }
 

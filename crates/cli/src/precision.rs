@@ -128,11 +128,17 @@ pub fn run(args: PrecisionArgs) -> CliResult<()> {
         &ladder,
         &reference,
         |i, r| {
+            let run = &r.setting.run;
             eprintln!(
-                "[{:>2}/{n}] {:<12} {:<12} {:>9.3} s  error {}",
+                "[{:>2}/{n}] {:<12} {:<12} {:<7} {:>9.3} s  error {}",
                 i + 1,
-                r.setting.run.method.name(),
+                run.method.name(),
                 label(r),
+                if run.method.is_adaptive() {
+                    run.protocol.as_str()
+                } else {
+                    ""
+                },
                 r.wall_s,
                 fmt_num(r.state_error)
             );

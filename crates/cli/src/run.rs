@@ -1,6 +1,7 @@
 //! `salient run SPEC.toml`: every member of the sweep on this machine's cores, with the same
 //! ledger and tile executor the distributed mode uses.
 
+use crate::human::rounded;
 use crate::output::Staged;
 use crate::spec::{self, JobSpec, RunSpec};
 use crate::usage::{runtime, CliError, CliResult};
@@ -111,31 +112,52 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         pool.install(|| write_run(&job, &result, staged.path()))?;
         results.push(result);
     }
-    write_sweep(&results, &out, staged, args.json)
+    write_sweep(&results, Some((&out, staged)), None, args.json)
 }
 
-/// The sweep's table.md/.csv/.json, percent_vs_t.png (when a run has checkpoints), written
-/// beside the runs' folders in `staged`, which is then published into `out`; then the table or
-/// the JSON summary on stdout.
-pub fn write_sweep(results: &[RunResult], out: &Path, staged: Staged, json: bool) -> CliResult<()> {
+/// Where a sweep's files go: the output folder and its staging folder.
+pub type Destination<'a> = (&'a Path, Staged);
+
+/// The sweep's table.md/.csv/.json and percent_vs_t.png (when a run has checkpoints), written
+/// beside the runs' folders in the staging folder, which is then published into the output
+/// folder (none: nothing is written); then the table, or the JSON summary (with the job's id
+/// when it came from a coordinator; table.json leaves it out), on stdout.
+pub fn write_sweep(
+    results: &[RunResult],
+    to: Option<Destination<'_>>,
+    job: Option<u64>,
+    json: bool,
+) -> CliResult<()> {
     let table = sweep_table(results);
-    let summary = json!({ "runs": results.iter().map(run_json).collect::<Vec<_>>() });
-    let stage = staged.path();
-    write_file(&stage.join("table.md"), &table.to_markdown())?;
-    write_file(&stage.join("table.csv"), &table.to_csv())?;
-    write_file(
-        &stage.join("table.json"),
-        &(serde_json::to_string_pretty(&summary).expect("JSON") + "\n"),
-    )?;
-    if results.iter().any(|r| !r.checkpoints.is_empty()) {
-        plot_percent_vs_t(results, &stage.join("percent_vs_t.png"))?;
+    let mut summary = json!({ "runs": results.iter().map(run_json).collect::<Vec<_>>() });
+    let out = match to {
+        Some((out, staged)) => {
+            let stage = staged.path();
+            write_file(&stage.join("table.md"), &table.to_markdown())?;
+            write_file(&stage.join("table.csv"), &table.to_csv())?;
+            write_file(
+                &stage.join("table.json"),
+                &(serde_json::to_string_pretty(&summary).expect("JSON") + "\n"),
+            )?;
+            if results.iter().any(|r| !r.checkpoints.is_empty()) {
+                plot_percent_vs_t(results, &stage.join("percent_vs_t.png"))?;
+            }
+            staged.publish()?;
+            Some(out)
+        }
+        None => None,
+    };
+    // On stdout only: table.json stays the same file `salient run` writes.
+    if let Some(id) = job {
+        summary["job"] = json!(id);
     }
-    staged.publish()?;
     if json {
         println!("{summary}");
     } else {
         print!("{}", table.to_markdown());
-        println!("wrote {}", out.display());
+        if let Some(out) = out {
+            println!("wrote {}", out.display());
+        }
     }
     Ok(())
 }
@@ -191,7 +213,7 @@ fn run_one(
             ));
         } else if last_log.elapsed() >= Duration::from_secs(5) {
             last_log = Instant::now();
-            tracing::info!(run = %label, resolved, compatible, orbits, orbits_per_s = rate, dropped = l.dropped, "progress");
+            tracing::info!(run = %label, resolved, compatible, orbits, orbits_per_s = rounded(rate, 0), dropped = l.dropped, "progress");
         }
     });
     if let Some(b) = bar {
@@ -199,7 +221,7 @@ fn run_one(
     }
     let wall_s = start.elapsed().as_secs_f64();
     let cpu_s = process_cpu_seconds() - cpu0;
-    tracing::info!(run = %label, wall_s, orbits = ledger.committed.len(), "done");
+    tracing::info!(run = %label, wall_s = rounded(wall_s, 3), orbits = ledger.committed.len(), "done");
     let mut result = RunResult::new(job, index, grid, ledger, cpu_s, wall_s, out);
     result.forecast_from = forecast.map(|(_, name)| name);
     Ok(result)

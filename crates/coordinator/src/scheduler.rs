@@ -21,9 +21,9 @@ use tonic::Status;
 /// [`WINDOW_TILES_MIN`], and [`WINDOW_TILES_PER_WORKER`] per worker. Near the frontier every
 /// cell is soon leased, has an outcome or is crossed by one while the frontier orbit runs on,
 /// and a worker whose lease brought nothing idles (workers skip cells that their own running
-/// orbits crossed, so farther cells cost little speculation). 400×400, τ = 0.01, t = 1e4,
-/// 1 worker × 2 threads (2026-11-24): 10.8 s with one tile per worker, 8.6–8.7 s with four,
-/// 5.9–6.0 s with 64 tiles, 5.8 s with the whole grid; τ = 0.5 unchanged (0.9 s).
+/// orbits crossed, so farther cells cost little speculation). A window of [`WINDOW_TILES_MIN`]
+/// tiles runs about as fast as the whole grid, one or a few tiles per worker far slower
+/// (figures: docs/performance.md).
 const WINDOW_TILES_PER_WORKER: usize = 4;
 const WINDOW_TILES_MIN: usize = 64;
 
@@ -123,7 +123,8 @@ struct Tile {
     lease: Option<ActiveLease>,
     /// The run ledger's [`Ledger::reopenings`] when the tile was last found without wanted
     /// cells: while it is unchanged the tile has none, and the lease search passes it by
-    /// (scanning the window's cells on every poll was ~30 % of the coordinator's CPU).
+    /// (scanning the window's cells on every poll would be a large share of the coordinator's
+    /// CPU; figures: docs/performance.md).
     drained_at: Option<u64>,
 }
 
@@ -208,6 +209,11 @@ fn now_ms() -> i64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_millis() as i64)
+}
+
+/// A log field as people read it: two decimals.
+fn round2(v: f64) -> f64 {
+    (v * 100.0).round() / 100.0
 }
 
 fn store_err(e: StoreError) -> Status {
@@ -740,12 +746,13 @@ impl Scheduler {
             tracing::info!(
                 job = id,
                 run = index,
-                wall_s = run.wall_s,
+                wall_s = round2(run.wall_s),
                 orbits = run.ledger.committed.len(),
-                dropped = run.ledger.dropped,
-                regular = reg,
-                sticky = st,
-                chaotic = ch,
+                // As run.json's orbits_dropped: the ledger's and those of stale reports.
+                dropped = run.ledger.dropped + run.extra_dropped_orbits,
+                regular = round2(reg),
+                sticky = round2(st),
+                chaotic = round2(ch),
                 "run done"
             );
         }
@@ -780,7 +787,7 @@ impl Scheduler {
                     .map_or(0, |&c| run.grid.tile_of(c));
                 // Speculation beyond the frontier's tile is bounded (see WINDOW_TILES_MIN):
                 // further cells are likely to be labelled meanwhile, and scanning the whole
-                // grid on every poll of an idle worker cost the coordinator more CPU than the
+                // grid on every poll of an idle worker costs the coordinator more CPU than the
                 // leases themselves. (Later runs of the job are scanned next: their frontier
                 // is certain work.)
                 let ahead = (WINDOW_TILES_PER_WORKER * workers.max(1)).max(WINDOW_TILES_MIN);
@@ -1384,8 +1391,8 @@ impl Scheduler {
                     t_final = r.t_final,
                     resolved = r.resolved,
                     compatible = r.compatible,
-                    orbits_per_s = r.orbits_per_s,
-                    eta_s = r.eta_s.unwrap_or(f64::NAN),
+                    orbits_per_s = r.orbits_per_s.round(),
+                    eta_s = round2(r.eta_s.unwrap_or(f64::NAN)),
                     workers = s.workers,
                     worker_threads = self.workers.values().map(|w| w.threads).sum::<u32>(),
                     dropped = r.dropped,

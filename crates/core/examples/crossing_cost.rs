@@ -1,6 +1,6 @@
 //! Cost of locating one section crossing, one at a time (`locate_upward`, the one-orbit
-//! driver's path) and four at a time in SIMD lanes (`locate_upward_lanes`, the batched
-//! driver's until 2026-11-26), and eight at a time to the cells of a 400×400 grid of (q2, p2)
+//! driver's path) and four at a time in SIMD lanes (`locate_upward_lanes`, full searches to
+//! the root), and eight at a time to the cells of a 400×400 grid of (q2, p2)
 //! (`locate_upward_lanes_settling`, the batched driver's for fast PSS): the crossing steps of
 //! 16 orbits (SBAB2C, τ = 0.5, t = 5e4) located again and again, best of 5.
 //!
@@ -45,7 +45,7 @@ fn main() {
             .map(|c| locate_upward_lanes::<_, 2, 4>(&map, c)[0].q[1])
             .sum()
     });
-    // DESIGN.md's default section bounds at H = 1/8, 400 cells each way.
+    // The grid's default section bounds at H = 1/8 (`default_bounds`), 400 cells each way.
     let (q2_lo, q2_hi) = (-0.439_692_620_785_908_4, 0.673_648_177_666_930_3);
     let p2_hi = 0.5f64;
     let cell = |x: f64, lo: f64, hi: f64| ((x - lo) / ((hi - lo) / 400.0)).floor();

@@ -59,7 +59,7 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     fn step(&mut self, t_end: f64) -> impl Future<Output = Result<(), StepFailure>>;
     /// [`Self::renormalise`] when `renormalise` is set (its factor comes back), then
     /// [`Self::step`]: one request, so that a SIMD batch renormalises all its lanes at once
-    /// (lane by lane it was an eighth of a run at τ = 0.01).
+    /// (lane by lane it is a large share of a run; figures: docs/performance.md).
     fn renormalise_and_step(
         &mut self,
         renormalise: bool,
@@ -110,8 +110,8 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
 
 /// The sums the driver tests after every step, over a state rounded to f64: generic, so that
 /// a SIMD batch forms them for all its lanes at once with each lane's operations the scalar
-/// ones (reading each lane's state and summing it lane by lane was a fifth of a run at
-/// τ = 0.01).
+/// ones (reading each lane's state and summing it lane by lane is a large share of a run;
+/// figures: docs/performance.md).
 #[derive(Clone, Copy, Debug)]
 pub struct StepEnd<T, const K: usize> {
     /// q₁, the section's coordinate.
@@ -375,7 +375,8 @@ pub(crate) struct Tally {
     /// Σ ln of the renormalisation factors of the first vector, but for those in `growth`.
     ln_growth: f64,
     /// The product of the factors since the last fold into `ln_growth`: a logarithm at every
-    /// renormalisation was a tenth of an f64 Taylor run at τ = 0.01 in lanes.
+    /// renormalisation is a visible share of an f64 Taylor run in lanes (figures:
+    /// docs/performance.md).
     growth: f64,
     energy_max: f64,
 }
@@ -587,7 +588,7 @@ impl<const K: usize> Books<'_, K> {
         }
         let th = self.config.thresholds;
         // The root-free screen first: SALI's three roots and two divisions at every multiple
-        // of τ cost 3–4 % of a restart-protocol run at τ = 0.01 (f64 Taylor and taylor-dd).
+        // of τ are a visible share of a restart-protocol run (figures: docs/performance.md).
         th.early_stop && may_be_aligned(sums.n2[0], sums.n2[1], sums.cross, th.chaotic) && {
             let y = state();
             sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1])) < th.chaotic
@@ -682,11 +683,9 @@ pub trait Watch<const N: usize> {
 
 /// Steps between polls of [`Watch::cancelled`]: the tangent-map driver's
 /// [`poll_interval`](crate::batch::poll_interval), 64 steps or a time of 4 when that is more.
-/// A poll wakes the orbit's driver in lanes and reads shared claims. Every 16 steps (until
-/// 2026-11-26) cost 3–5 % of a restart-protocol run at τ = 0.01 against every 400 (100×100,
-/// t = 1e3, 1 thread, alternated three times: f64 Taylor 2.27–2.37 against 2.22–2.65 s,
-/// taylor-dd 3.06–3.12 against 2.91–3.27 s, DOP853 3.27–3.33 against 3.12–3.23 s), and a
-/// claim ages little in a time of 4 against orbits of 1e4.
+/// A poll wakes the orbit's driver in lanes and reads shared claims, so polling every few
+/// steps costs a visible share of a run (figures: docs/performance.md), and a claim ages
+/// little in a time of 4 against orbits of 1e4.
 pub fn watch_poll(tau: f64) -> u64 {
     crate::batch::poll_interval(tau)
 }
@@ -882,7 +881,8 @@ where
                 let (t0, t1) = (integ.t_prev(), integ.t());
                 let y1 = integ.state();
                 let sali1 = sali((&y1.dq[0], &y1.dp[0]), (&y1.dq[1], &y1.dp[1]));
-                // The last multiple of τ in the step, by the same test as the sampling loop had.
+                // The last multiple of τ in the step: the largest n ≤ n_final whose n·τ, formed
+                // as the loop below forms it, is at most t1.
                 let mut n_last = ((t1 / tau) as u64).clamp(pace.n, n_final);
                 while n_last < n_final && (n_last + 1) as f64 * tau <= t1 {
                     n_last += 1;

@@ -28,7 +28,7 @@ const _: () = assert!(ENERGY_CHECK_EVERY <= 64);
 
 /// A copy of `a` made one vector at a time (see its use in [`feed_loop`]). With 4 lanes each
 /// element is one 256-bit load that LLVM can neither merge with its neighbour into a 512-bit
-/// move nor split: a volatile read of the array type went as four scalar loads and stores per
+/// move nor split: a volatile read of the array type goes as four scalar loads and stores per
 /// vector (32 memory operations a step), and the crossing test then read q1 back as a vector
 /// from the four stores, which store forwarding cannot serve.
 #[inline(always)]
@@ -151,7 +151,7 @@ pub trait BatchFeed<const N: usize> {
     /// Whether each result carries its orbit's crossings, as `integrate`'s does. A feed that
     /// books them as they come through [`BatchFeed::on_crossing`] says no: a regular orbit at
     /// τ = 0.5 crosses 1 500 times, and the list's growth (copies, allocations, page faults)
-    /// was a few per cent of a fast-PSS run.
+    /// is a visible cost in a fast-PSS run (figures: docs/performance.md).
     fn keeps_crossings(&self) -> bool {
         true
     }
@@ -180,7 +180,7 @@ pub trait BatchFeed<const N: usize> {
 
 /// Steps between polls of [`BatchFeed::cancelled`] (and between requests for work of idle
 /// lanes): 64 steps, or a time of 4 when that is more. A poll reads shared claims at random
-/// places, about as costly as a step; at τ = 0.01 polling every 64 steps cost 2 % of the run,
+/// places, about as costly as a step, so polls are spaced out (figures: docs/performance.md),
 /// and a claim ages little in a time of 4 against orbits of 1e4.
 pub fn poll_interval(tau: f64) -> u64 {
     let by_time = (4.0 / tau).ceil();
@@ -387,7 +387,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
                 if !self.active[l] {
                     // Still empty: its zeros are a fixed point of the step, so there is
                     // nothing to reset. Idle lanes ask every few steps while a worker waits
-                    // for leases, and resetting them each time was 4 % of its CPU.
+                    // for leases, and resetting them each time costs a visible share of its CPU.
                     return;
                 }
                 (Phase::zero(), None)
@@ -455,12 +455,9 @@ impl Isa {
     }
 
     /// Lanes per batch that suit this instruction set: one vector register per variable.
-    /// `cargo run --release -p salient-core --example batch_profile` (2026-11-24, AVX-512
-    /// host): 8 lanes in AVX-512 3.55–3.95 ns per orbit-step; 8 lanes pinned 6.7 ns (16
-    /// registers cannot hold two groups of four). 4 lanes (2026-11-26, after their arithmetic
-    /// became explicit AVX vectors): 6.9 ns pinned, 4.4 ns in the AVX-512 copy (32 registers
-    /// hold the state and the increments without spills; 8.0 ns before, when LLVM's
-    /// vectoriser split the step).
+    /// AVX-512's 32 registers hold 8 lanes' state and increments without spills; pinned code's
+    /// 16 cannot hold two groups of four, so it runs 4 (`batch_profile` figures:
+    /// docs/performance.md).
     pub fn lanes(self) -> usize {
         match self {
             Isa::Pinned => 4,
@@ -531,9 +528,9 @@ unsafe fn feed_loop_avx512<
     requests: &Requests,
     feed: &mut impl BatchFeed<N>,
 ) {
-    // `batch_profile` on an Intel AVX-512 host: 8 lanes 5.45 → 4.65 ns per orbit-step with the
-    // state resident, 4 lanes 6.2 → 6.7. The resident loop keeps the map's own dispatch:
-    // compiled for a fixed shape it kept its state in memory (4.6 → 9.3 ns).
+    // The state stays resident with 8 lanes, where that is faster, and not with 4, where it is
+    // slower. The resident loop keeps the map's own dispatch: compiled for a fixed shape it
+    // keeps its state in memory (`batch_profile` figures: docs/performance.md).
     if L >= 8 {
         let _ = shape;
         feed_loop::<H, N, K, L, true, AnyShape>(AnyShape, map, config, requests, feed)
@@ -546,7 +543,8 @@ unsafe fn feed_loop_avx512<
 /// screening (all `#[inline(always)]`) are compiled for it. `RESIDENT`: the lanes' state stays
 /// in registers across steps and goes to memory only for the steps that need the scalar paths
 /// (the AVX-512 copy with 8 lanes, one register per variable; with AVX2's 16 registers it
-/// spills, and 4 lanes in the AVX-512 copy measured slower).
+/// spills, and 4 lanes in the AVX-512 copy run slower resident; figures:
+/// docs/performance.md).
 #[inline(always)]
 fn feed_loop<
     H: Hamiltonian<N>,
@@ -597,7 +595,7 @@ fn feed_loop<
             .then_some(4.0 * chaotic * chaotic),
     };
     // The 4-lane loop's quiet windows (the 8-lane resident loop keeps every screen: any more
-    // work in it made LLVM give up keeping its state in registers).
+    // work in it makes LLVM give up keeping its state in registers).
     let quiet_rules = if L == 4 && !RESIDENT && !requests.energy {
         QuietRules::new(shape, map, config)
     } else {
@@ -632,16 +630,17 @@ fn feed_loop<
         let step = st.step;
         // One vector at a time: copied as whole arrays, LLVM moves two 4-lane vectors in one
         // 512-bit register in the AVX-512 copy, and on Intel cores a 512-bit instruction in
-        // every step shuts the second vector port (4 lanes: 11.6 against 6.6 ns per
-        // orbit-step, `batch_profile`). Volatile reads cannot be merged.
+        // every step shuts the second vector port (`batch_profile` figures:
+        // docs/performance.md). Volatile reads cannot be merged.
         let (q_prev, p_prev): ([Lanes<L>; N], [Lanes<L>; N]) = if RESIDENT {
             (x_kept.q, x_kept.p)
         } else {
             (vector_copy(&st.x.q), vector_copy(&st.x.p))
         };
         // The step and the screening work on a local copy (stored back at once unless
-        // `RESIDENT`): screening the stored state made the compiler reload it in pieces that
-        // defeat store forwarding (a third of the 8-lane AVX-512 loop).
+        // `RESIDENT`): screening the stored state makes the compiler reload it in pieces that
+        // defeat store forwarding, a large share of the 8-lane AVX-512 loop (figures:
+        // docs/performance.md).
         let x = if RESIDENT {
             shape.advance(map, &mut x_kept, &mut inc_kept);
             x_kept
@@ -677,8 +676,8 @@ fn feed_loop<
         let idle_poll =
             step.is_multiple_of(IDLE_POLL) && !st.exhausted && st.active.iter().any(|&a| !a);
         // The scalar paths below read and write the lanes' state in `st`. (Storing it only
-        // where they need it measured slower: reading lanes of the local copy made LLVM keep
-        // that copy in memory.)
+        // where they need it is slower: reading lanes of the local copy makes LLVM keep that
+        // copy in memory.)
         let scalar = flagged != 0 || full_poll || idle_poll;
         if RESIDENT && scalar {
             (st.x, st.inc) = (x_kept, inc_kept);
@@ -708,8 +707,8 @@ fn feed_loop<
             flagged &= flagged - 1;
             // The root-free alignment pre-filter cannot resolve angles below ~3e-7 (cos² is 1
             // to f64's precision), and at τ = 0.01 a chaotic orbit spends thousands of steps
-            // there on its way to the threshold: 29 of every 31 flagged steps of a 400×400
-            // run. When that is the only flag, the exact SALI (the tracker's own function on
+            // there on its way to the threshold: most flagged steps of a 400×400 run. When
+            // that is the only flag, the exact SALI (the tracker's own function on
             // the same bits) settles it at a fraction of the scalar pass.
             if only_aligned & bit != 0 && !lane_sali_below(&st.x, l, chaotic) {
                 continue;
@@ -717,8 +716,9 @@ fn feed_loop<
             let n = st.n(l);
             let t_prev = (n - 1) as f64 * map.tau();
             if only_crossed & bit != 0 {
-                // Nothing else is due, so the tracker's pass would only flag the crossing: at
-                // τ = 0.5 that pass on every crossing was half the stepping thread's time.
+                // Nothing else is due, so the tracker's pass would only flag the crossing, and
+                // at τ = 0.5 that pass on every crossing is a large share of the stepping
+                // thread's time (figures: docs/performance.md).
                 if queued.push_lane(l, &q_prev, &p_prev, t_prev, st.x.q[0].0[l]) {
                     queued.flush(map, &mut st.jobs, feed);
                 }
@@ -776,11 +776,9 @@ fn feed_loop<
 /// that leaves the radius gets the tracker's full pass at that step and ends the window, as
 /// does every new orbit (it was not at the check). The lanes' results are those of the
 /// scalar driver, bit for bit: a skipped test is one that would have found nothing.
-/// The screening these windows skip was 15 % of the loop (`batch_profile`, SBAB2C τ = 0.05,
-/// 4 AVX-512 lanes: 5.47 against 4.67 ns per orbit-step with it removed). 400×400 fast PSS,
-/// τ = 0.01, t = 2e3, 1 thread: 73 % of the driver's steps quiet, 2.78 → 2.57 s; with
-/// Γ⁴ ≤ 100 instead of 10 (windows of 28 steps, but lanes restless below SALI ≈ 2e-6) 68 %
-/// quiet and 2.64 s.
+/// The screening these windows skip is a large share of the stepping loop. A bound above
+/// [`QUIET_ANGLE_STRETCH`] gives longer windows but leaves lanes restless at larger SALI, and
+/// fewer steps are quiet (figures: docs/performance.md).
 struct QuietRules {
     /// From a calm step to the next full screen.
     steps: u64,
@@ -890,17 +888,15 @@ struct Flags {
 /// Counts the step just taken in every lane and screens the new state: which lanes need the
 /// scalar bookkeeping? Every condition under which `Tracker::after_step` acts must raise the
 /// flag. `x` is the lanes' new state (the driver's local copy of `st.x`: screening the stored
-/// state made the compiler reload it in pieces that defeat store forwarding) and `q1_prev`
+/// state makes the compiler reload it in pieces that defeat store forwarding) and `q1_prev`
 /// holds q1 before the step.
 ///
 /// Two forms of the same conditions. With 4 lanes (one 256-bit vector) each condition is one
 /// vector compare and a mask extraction, so a step where no lane needs anything costs no
-/// per-lane work: the element-wise form was a fifth of the stepping thread's time at τ = 0.5.
-/// With it (and [`Lanes`]' 4-lane arithmetic written as AVX vectors), 400×400, τ = 0.5,
-/// t = 1e4 went from 0.321 to 0.285 s with 2 threads and from 0.398 to 0.351 s with 1 (medians
-/// of 7 and 5, alternated). The AVX-512 driver's 8 lanes keep the element-wise form: there
-/// the 256-bit masks made LLVM split the whole step into 256-bit halves (3.65 → 5.1 ns per
-/// orbit-step), while it compiles the element-wise form into 512-bit compares.
+/// per-lane work, where the element-wise form takes a large share of the stepping thread's
+/// time at τ = 0.5. The AVX-512 driver's 8 lanes keep the element-wise form: there the
+/// 256-bit masks make LLVM split the whole step into 256-bit halves, while it compiles the
+/// element-wise form into 512-bit compares (figures: docs/performance.md).
 #[inline(always)]
 fn screen<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
     ham: &H,
@@ -1052,9 +1048,7 @@ fn minors_may_be_below<const N: usize, const K: usize, const L: usize>(
 
 /// Crossings located together, whatever the driver's lane count: a search is a chain of
 /// dependent operations, and 8 searches side by side (two 4-lane vectors) fill the pipeline
-/// better than 4. SBAB2C, τ = 0.5, crossings of 16 orbits (`crossing_cost`): to the cells of
-/// a 400×400 grid 39 ns each 4 at a time, 28 ns 8 at a time, 30 ns 16 at a time; full
-/// searches 53 ns either way.
+/// better than 4; 16 gain nothing more (`crossing_cost` figures: docs/performance.md).
 const LOCATE_LANES: usize = 8;
 
 /// Crossings waiting to be located, at most [`LOCATE_LANES`].
@@ -1075,9 +1069,9 @@ impl<const N: usize> CrossingQueue<N> {
 
     /// Queues the crossing of lane `l` in the step that starts at its lane of (`q`, `p`) at
     /// time `t` and ends with q1 = `q1_end`; true when the queue is full. Written into the
-    /// slot number by number: a `CrossingStep` assembled first went through the stack in
-    /// pieces of 8 bytes read back as 16 and 32, two failed store forwards per crossing (8 %
-    /// of the stepping loop's samples at τ = 0.5).
+    /// slot number by number: a `CrossingStep` assembled first goes through the stack in
+    /// pieces of 8 bytes read back as 16 and 32, two failed store forwards per crossing
+    /// (figures: docs/performance.md).
     fn push_lane<const L: usize>(
         &mut self,
         l: usize,

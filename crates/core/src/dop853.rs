@@ -3,9 +3,9 @@
 //! *Solving ODEs I*, 2nd ed., §II.5, §II.6, §II.10). Applied to the orbit and its deviation
 //! vectors as one system: q' = p, p' = −∇V, δq' = δp, δp' = −D²V δq.
 //!
-//! The coefficients are the published ones (research/dop853-taylor.md §1 cites their sources);
-//! the code is this project's. The stiffness test of Hairer's code is omitted: Hamiltonian
-//! systems like these are not stiff, and the test would only cost evaluations.
+//! The coefficients are the published ones; the code is this project's. The stiffness test
+//! of Hairer's code is omitted: Hamiltonian systems like these are not stiff, and the test
+//! would only cost evaluations.
 
 // Coefficients keep the digits their sources publish; f64 rounds them once.
 #![allow(clippy::excessive_precision)]
@@ -744,7 +744,7 @@ fn blend<const N: usize, const K: usize, const L: usize>(
         return;
     }
     // Selected by bit masks, without a branch per word (a test and a jump for each lane of
-    // each word were a tenth of a batch step).
+    // each word are a visible share of a batch step; figures: docs/performance.md).
     let keep: [u64; L] = core::array::from_fn(|l| if mask[l] { 0 } else { !0 });
     dst.zip_mut(src, |d, s| {
         for l in 0..L {

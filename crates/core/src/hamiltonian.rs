@@ -202,7 +202,7 @@ impl Hamiltonian<2> for HenonHeiles {
 
     #[inline(always)]
     fn corrector_grad<T: Real>(&self, q: &[T; 2]) -> [T; 2] {
-        // ∇K = (2x(1 + 2x² + 6y + 2y²), 2(y + 3x² − 3y² + 2x²y + 2y³)), research note §2.3.
+        // ∇K = (2x(1 + 2x² + 6y + 2y²), 2(y + 3x² − 3y² + 2x²y + 2y³)).
         let [x, y] = *q;
         let c = T::splat;
         let (xx, yy) = (x * x, y * y);
@@ -303,7 +303,8 @@ impl Hamiltonian<2> for HenonHeiles {
 mod tests {
     use super::*;
 
-    /// Explicit formulas from research/symplectic-sali.md §2.3 (checked there with sympy).
+    /// Explicit formulas for ∇K and D²K (checked with sympy), written apart from the code
+    /// under test.
     fn grad_k_note(q1: f64, q2: f64) -> [f64; 2] {
         [
             2.0 * q1 * (1.0 + 2.0 * q1 * q1 + 6.0 * q2 + 2.0 * q2 * q2),

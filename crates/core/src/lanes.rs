@@ -421,23 +421,16 @@ pub struct LaneSetup<'a, H> {
 
 /// Lanes per batch of an adaptive run up to [`FEWER_LANES_ABOVE_T_FINAL`]. More lanes make a
 /// step cheaper per orbit but put more orbits in flight, and in a fast-PSS run every orbit in
-/// flight beyond the frontier may be dropped when an earlier orbit labels its cell. `taylor-dd`,
-/// δ = 1e-5, 400×400, τ = 0.5, t = 1e4, 2 threads (2026-11-24): one orbit per thread 42.3 s;
-/// 4 lanes 24.6 s (32 % of the steps dropped; 27.4 s in AVX2 code); 8 AVX-512 lanes 28.7 s
-/// (47 % dropped). With its high orders in f64 (2026-11-25, `taylor::lead_order`) the step is
-/// far cheaper and the lanes' lead narrower: τ = 0.5 7.5–7.7 s in 4 lanes against 7.75–7.9 s
-/// one at a time, τ = 0.01 88.7 against 113 s.
+/// flight beyond the frontier may be dropped when an earlier orbit labels its cell. Four lanes
+/// beat both one orbit per thread and eight AVX-512 lanes (figures: docs/performance.md).
 pub const LANES: usize = 4;
 
 /// Lanes per batch of an adaptive run past [`FEWER_LANES_ABOVE_T_FINAL`] at τ of at least
 /// [`crate::run::F64_TAYLOR_LANES_BELOW_TAU`] (in practice taylor-dd at τ = 0.5): the longer
 /// the regular orbits run, the more of the orbits in flight an earlier orbit's crossings
-/// overtake late, and where steps are not cut by τ a lane's step saves least. 400×400,
-/// 2 threads (2026-11-25, sixth session), 4 lanes against 2: taylor-dd τ = 0.5, t = 1e5
-/// 61.7 against 49.6 s (46 against 20 % of the steps dropped); f64 Taylor (in lanes for the
-/// measurement) τ = 0.5, t = 1e4 4.70 against 4.96 s, t = 1e5 37.4 against 30.3 s; but at
-/// τ = 0.01, where a lane's step saves most, four stay ahead at t = 1e5 (f64 Taylor 303
-/// against 330 s, 32 against 11 % dropped).
+/// overtake late, and where steps are not cut by τ a lane's step saves least. At small τ,
+/// where a lane's step saves most, four stay ahead even in long runs (figures:
+/// docs/performance.md).
 pub const LONG_RUN_LANES: usize = 2;
 
 /// The t_final above which [`LONG_RUN_LANES`] may replace [`LANES`].
@@ -605,7 +598,7 @@ fn drive<B, H, const N: usize, const K: usize, const L: usize>(
             let factor = renormalise[l].then_some(factors[l]);
             // A quiet restart step is the driver's too, taken here: the lane asks for its
             // next step without waking its future (the driver's per-step work in each lane's
-            // future was a third of an f64 Taylor run at τ = 0.01).
+            // future is a large share of an f64 Taylor run; figures: docs/performance.md).
             if let (Ok(()), Some(request)) = (r, quiet[l].borrow_mut().as_mut()) {
                 let b = batch.borrow();
                 let (b, h0) = (&*b, request.h0);

@@ -82,7 +82,7 @@ pub const ENERGY_DRIFT_DEFAULT: f64 = 1e-2;
 
 /// The tangent-map driver checks the energy every this many steps (and at the last): a
 /// splitting step beyond its stability limit blows the energy up within a few steps, and a
-/// check every step would cost a tenth of a step.
+/// check every step would be a visible share of the step's cost (figures: docs/performance.md).
 pub const ENERGY_CHECK_EVERY: u64 = 16;
 
 impl Default for Thresholds {

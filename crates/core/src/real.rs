@@ -78,11 +78,11 @@ impl<const L: usize> Lanes<L> {
 }
 
 /// Four lanes as one 256-bit vector on x86-64 with AVX and FMA (the pinned target level).
-/// LLVM's vectoriser turned the element-wise loops into such vectors too, but not reliably:
-/// a change in code around a large inlined step (the batched driver's bookkeeping) could make
-/// it split the step into 128-bit halves and scalars joined through memory, 6.5 → 19 ns per
-/// orbit-step. Written as vectors, the step compiles the same whatever surrounds it. The
-/// operations are the same IEEE ones, so the bits are too.
+/// LLVM's vectoriser turns the element-wise loops into such vectors too, but not reliably:
+/// a change in code around a large inlined step (the batched driver's bookkeeping) can make
+/// it split the step into 128-bit halves and scalars joined through memory, about three times
+/// slower (figures: docs/performance.md). Written as vectors, the step compiles the same
+/// whatever surrounds it. The operations are the same IEEE ones, so the bits are too.
 #[cfg(all(target_arch = "x86_64", target_feature = "avx", target_feature = "fma"))]
 mod avx4 {
     use super::Lanes;

@@ -101,21 +101,17 @@ pub fn run_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
 }
 
 /// f64 Taylor runs in SIMD lanes below this τ, one orbit per thread above it. Lanes make a step
-/// cheaper per orbit (86 against 137 ns per orbit-step, 1 thread, 100×100, τ = 0.01,
-/// t = 1e3) but keep four orbits per thread in flight, and the fast-PSS rule drops about 30 %
-/// of their steps against 2–3 % one at a time; the more steps a crossing takes, the more the
-/// cheaper step pays. 400×400, t = 1e4, 2 threads (2026-11-25), one at a time against lanes:
-/// τ = 0.5 4.4–4.7 against 4.9–5.0 s, τ = 0.1 6.3 against 5.9 s, τ = 0.01 61.0 against
-/// 51.2 s. The same results either way (each lane computes what the scalar driver does).
+/// cheaper per orbit but keep four orbits per thread in flight, and the fast-PSS rule drops
+/// far more of their steps than one at a time; the more steps a crossing takes, the more the
+/// cheaper step pays, so lanes win at τ = 0.1 and below and lose at τ = 0.5 (figures:
+/// docs/performance.md). The same results either way (each lane computes what the scalar
+/// driver does).
 pub const F64_TAYLOR_LANES_BELOW_TAU: f64 = 0.25;
 
 /// DOP853 runs in SIMD lanes below this τ, one orbit per thread above it: as for f64 Taylor,
-/// the lanes' cheaper steps (150 against 236 ns per orbit-step, 100×100, τ = 0.01, t = 1e3,
-/// 1 thread) against the 30 % of their steps that speculation drops. 400×400, t = 1e4,
-/// 2 threads (2026-11-25), one at a time against lanes: τ = 0.5 2.6 against 3.2 s, τ = 0.1
-/// 11.8 against 11.8 s, τ = 0.05 21.2 against 19.3 s, τ = 0.01 103.3 against 85.5 s. The lead
-/// shrinks at longer t_final, as more of the orbits in flight are overtaken (τ = 0.05,
-/// t = 1e5: 149.2 against 147.7 s).
+/// the lanes' cheaper steps against the share of their steps that speculation drops. Lanes
+/// win below τ = 0.1, break even at it and lose above; the lead shrinks at longer t_final, as
+/// more of the orbits in flight are overtaken (figures: docs/performance.md).
 pub const DOP853_LANES_BELOW_TAU: f64 = 0.1;
 
 /// How many orbits one thread of [`integrate_feed_adaptive`] integrates at once with the
@@ -139,12 +135,10 @@ pub fn adaptive_orbits_per_thread(method: &Method, tau: f64, t_final: f64) -> us
 
 /// DOP853's lanes per batch where a forecast guides the feed (`guided` in
 /// [`integrate_feed_adaptive`]) and the host has AVX-512: one register per number. Its steps
-/// cost less per orbit in 8 lanes than in 4 (91 against 110 ns at τ = 0.01), but without a
-/// forecast the fast-PSS rule drops 46 % of the steps of 8 lanes in flight against 29 % of 4.
-/// 400×400, τ = 0.01, 2 threads (2026-11-26): after TM-SBAB2C in a sweep (its labellers as
-/// the forecast) t = 1e4 37.4–39.8 s in 8 lanes against 41.5–41.7 s in 4, t = 1e5 303 s
-/// (12 % of the steps dropped) against 327 s (1 %); alone, t = 1e4, 67.3 against 55.4 s.
-/// f64 Taylor and taylor-dd step no cheaper per orbit in 8 lanes.
+/// cost less per orbit in 8 lanes than in 4, but without a forecast the fast-PSS rule drops
+/// far more of the steps of 8 lanes in flight than of 4: with a forecast (say TM-SBAB2C's
+/// labellers, earlier in a sweep) 8 lanes are faster, alone 4 are (figures:
+/// docs/performance.md). f64 Taylor and taylor-dd step no cheaper per orbit in 8 lanes.
 pub const GUIDED_DOP853_LANES: usize = 8;
 
 /// The orbits one thread of [`integrate_feed_adaptive`] integrates at once: as
@@ -212,10 +206,9 @@ fn in_lanes<H: TaylorSeries<N>, const N: usize, const K: usize, const L: usize>(
     let start = |q, p| Phase { q, p, dq, dp };
     match &run.method {
         // f64 Taylor's four lanes fill one AVX2 register per number; compiled for AVX-512 the
-        // compiler packs two numbers into one register and shuffles them apart, which cost
-        // 8 % (100×100, τ = 0.01, t = 1e3, 1 thread, alternated four times, 2026-11-26:
-        // 1.78–1.89 s pinned against 1.95–2.16 s). DOP853's stages and taylor-dd's
-        // double-double sums gain from AVX-512's 32 registers.
+        // compiler packs two numbers into one register and shuffles them apart, which is
+        // slower than the pinned copy (figures: docs/performance.md). DOP853's stages and
+        // taylor-dd's double-double sums gain from AVX-512's 32 registers.
         Method::Taylor => {
             integrate_feed_taylor_on::<H, f64, N, K, L>(Isa::Pinned, setup, start, feed)
         }

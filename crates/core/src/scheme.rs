@@ -6,8 +6,8 @@
 //! and a kick both move p by a function of q, the corrector is folded into the end kicks of SBAB
 //! schemes and stands alone (a kick with b = 0) at the ends of SABA schemes.
 //!
-//! Coefficients and orders: research/symplectic-sali.md §1.2–§1.5 and §3.1–§3.2 (Laskar &
-//! Robutel 2001; Blanes et al. 2013 for ABA864; Blanes & Moan 2002 for SRKN^a_14).
+//! Coefficients and orders: Laskar & Robutel 2001 for SABA_n, SBAB_n and their correctors;
+//! Blanes et al. 2013 for ABA864; Blanes & Moan 2002 for SRKN^a_14.
 
 // Coefficients keep the digits their sources publish; f64 rounds them once.
 #![allow(clippy::excessive_precision)]
@@ -42,7 +42,7 @@ pub struct Scheme {
     pub corrector: f64,
 }
 
-// SABA_n: drifts c_i at Gauss–Legendre spacings, kicks d_i = Gauss weights (§1.2).
+// SABA_n: drifts c_i at Gauss–Legendre spacings, kicks d_i = Gauss weights.
 const SABA1: &[f64] = &[0.5, 1.0];
 const SABA2: &[f64] = &[
     0.211_324_865_405_187_117_75,
@@ -62,7 +62,7 @@ const SABA4: &[f64] = &[
     0.326_072_577_431_273_071_31,
     0.339_981_043_584_856_264_80,
 ];
-// SBAB_n: kicks d_i = Gauss–Lobatto weights, drifts between Lobatto nodes (§1.2).
+// SBAB_n: kicks d_i = Gauss–Lobatto weights, drifts between Lobatto nodes.
 const SBAB1: &[f64] = &[0.5, 1.0];
 const SBAB2: &[f64] = &[1.0 / 6.0, 0.5, 2.0 / 3.0];
 const SBAB3: &[f64] = &[
@@ -78,7 +78,7 @@ const SBAB4: &[f64] = &[
     0.327_326_835_353_988_571_90,
     16.0 / 45.0,
 ];
-// Corrector coefficients g (§1.3).
+// Corrector coefficients g (Laskar & Robutel).
 const G_SABA1: f64 = 1.0 / 12.0;
 const G_SABA2: f64 = 0.011_164_549_684_630_112_770;
 const G_SABA3: f64 = 0.005_634_593_363_122_809_402_3;
@@ -87,7 +87,7 @@ const G_SBAB1: f64 = -1.0 / 24.0;
 const G_SBAB2: f64 = 1.0 / 72.0;
 const G_SBAB3: f64 = 0.006_318_264_279_517_539_992_9;
 const G_SBAB4: f64 = 0.003_644_793_600_153_249_302_3;
-// ABA864 (§3.1): a1 b1 a2 b2 a3 b3 a4 b4 | mirror.
+// ABA864 (Blanes et al. 2013): a1 b1 a2 b2 a3 b3 a4 b4 | mirror.
 const ABA864: &[f64] = &[
     0.071_133_426_498_223_117_777_938_730_006_154_996_417_4,
     0.183_083_687_472_197_221_961_703_757_166_430_291_072,
@@ -98,8 +98,8 @@ const ABA864: &[f64] = &[
     -0.333_698_616_227_678_005_726_562_603_400_438_876_027,
     0.065_396_142_282_373_418_455_972_179_391_113_436_371_0,
 ];
-// SRKN^a_14 (§3.1): a1 b1 … a7 b7 a8 | mirror. The source gives 17 digits; b7 and a8 are
-// recomputed from Σa = Σb = 1 in `Scheme::ops` so the sums hold to rounding.
+// SRKN^a_14 (Blanes & Moan 2002): a1 b1 … a7 b7 a8 | mirror. The source gives 17 digits;
+// b7 and a8 are recomputed from Σa = Σb = 1 in `Scheme::ops` so the sums hold to rounding.
 const SRKN14A: &[f64] = &[
     0.037_859_319_840_611_600,
     0.091_719_152_624_461_650,

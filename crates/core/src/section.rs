@@ -260,9 +260,9 @@ where
 /// error, a series in powers of τ·ω with ω² the size of D²V over the step: a lane settles
 /// only where τ²·(‖D²V‖∞ + τ‖D³V(p, ·, ·)‖∞) ≤ 4 (the second term: how much D²V changes
 /// while the orbit moves by τ·p) and the crossing model's slope `dg`, which fits the step's
-/// own end point, agrees with p1 to 5 %. (Orbits far out on their way to escape, with
-/// q ~ 1e8 or beyond, were the test's counterexamples without the first condition: their
-/// partial steps leave the field's path, and may cross the section more than once.)
+/// own end point, agrees with p1 to 5 %. (The first condition keeps out orbits far out on
+/// their way to escape, with q ~ 1e8 or beyond: their partial steps leave the field's path,
+/// and may cross the section more than once.)
 fn settle_lanes<H: Hamiltonian<N>, const N: usize, const L: usize>(
     map: &TangentMap<'_, H>,
     q: &[Lanes<L>; N],

@@ -549,9 +549,8 @@ fn add_kick_increment<T: Real, const N: usize, const K: usize>(
 /// How a batched loop takes its steps, chosen once per loop rather than at every step.
 /// [`TangentMap::advance`] finds the map's shape at every step (an indirect jump on the body's
 /// length, tests of the edge's kind and of each coefficient against zero); a loop compiled for
-/// one shape, its coefficients read once, has none of that. SBAB2C, τ = 0.05, `batch_profile`,
-/// ns per orbit-step: 4 pinned lanes 7.0 → 5.6, 4 AVX-512 lanes 5.85 → 5.3, 8 AVX-512 lanes
-/// unchanged (4.6–4.7).
+/// one shape, its coefficients read once, has none of that, which speeds up 4-lane loops
+/// (`batch_profile` figures: docs/performance.md).
 pub(crate) trait StepShape: Copy {
     /// [`TangentMap::advance`] for the map the shape was read from: the same operations.
     fn advance<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(

@@ -5,10 +5,10 @@
 //! Cauchy products of the coefficients already known ([`TaylorSeries`]); the deviation vectors'
 //! coefficients come from the same recursion applied to D²V·δq. Order and step follow Jorba &
 //! Zou (Exp. Math. 14, 2005): p = ⌊1.5 − 1.16 log10 δ⌋ and h = min(ρ_{p−1}, ρ_p) e^{−2}
-//! e^{−0.7/(p−1)} with ρ_j = ‖x_[j]‖^{−1/j} (research/dop853-taylor.md §3.1). No step is
-//! rejected; the polynomial is the dense output. Generic over the number type, so the same code
-//! runs in f64 (`taylor`) and in double-double (`taylor-dd`), one orbit at a time ([`Taylor`])
-//! or several in SIMD lanes ([`TaylorLanes`]).
+//! e^{−0.7/(p−1)} with ρ_j = ‖x_[j]‖^{−1/j}. No step is rejected; the polynomial is the dense
+//! output. Generic over the number type, so the same code runs in f64 (`taylor`) and in
+//! double-double (`taylor-dd`), one orbit at a time ([`Taylor`]) or several in SIMD lanes
+//! ([`TaylorLanes`]).
 
 use crate::dd::DoubleDouble;
 use crate::dop853::{LaneSteps, StepFailure};
@@ -215,15 +215,15 @@ impl TaylorSeries<2> for HenonHeiles {
         // in the same order as there (same bits); in double-double each sum is a long chain
         // of dependent operations, and side by side they overlap. q1 − q2 and q1 + q2 are
         // kept as series (`derived`): grad_coeff forms them afresh for every product, which
-        // in double-double was a tenth of the step.
+        // in double-double is a visible share of the step (figures: docs/performance.md).
         let (a, b) = (&q[0], &q[1]);
         derived[0][k] = a[k] - b[k];
         derived[1][k] = a[k] + b[k];
         let (dif, sum) = (&derived[0], &derived[1]);
         let (mut s12, mut sd) = (a[0] * b[k], dif[0] * sum[k]);
         // Plain loops rather than `array::from_fn`: the compiler may outline an array builder,
-        // and a call in this loop costs a `vzeroupper` and stalls store forwarding (it was a
-        // fifth of the 8-lane AVX-512 step).
+        // and a call in this loop costs a `vzeroupper` and stalls store forwarding, a large
+        // share of the 8-lane AVX-512 step (figures: docs/performance.md).
         let mut s1 = [T::splat(0.0); K];
         let mut s2 = [T::splat(0.0); K];
         for v in 0..K {
@@ -293,11 +293,12 @@ const LEAD_MARGIN: f64 = 1e-6;
 /// the model, and on random points the step moved by up to 1.5e-5 δ: test
 /// `lead_orders_in_f64_keep_the_step_within_a_tiny_share_of_delta`). Order 0, the state
 /// itself, is always kept in full. At the paper's δ = 1e-5 every order from 1 on qualifies:
-/// the double-double recursion cost 3–4 times the f64 one and was no more accurate (R1,
-/// τ = 0.01, t = 1e4: max |ΔH/H| 5.3e-14 in double-double, 3.9e-14 in f64: the truncation
-/// either way), while the state summed in double-double keeps a million steps' rounding out
-/// of it. At δ = 1e-28 (order 33) orders 21 and up qualify; max |ΔH/H| of R1 to t = 1e3
-/// (free protocol) was 4.4e-30 with every order in double-double and 4.1e-30 so.
+/// the double-double recursion costs several times the f64 one (figures:
+/// docs/performance.md) and is no more accurate (R1, τ = 0.01, t = 1e4: max |ΔH/H| 5.3e-14 in
+/// double-double, 3.9e-14 in f64: the truncation either way), while the state summed in
+/// double-double keeps a million steps' rounding out of it. At δ = 1e-28 (order 33) orders 21
+/// and up qualify; max |ΔH/H| of R1 to t = 1e3 (free protocol) is 4.4e-30 with every order in
+/// double-double and 4.1e-30 so.
 pub fn lead_order(delta: f64) -> usize {
     let k = 0.5 * (0.5 * f64::EPSILON / (LEAD_MARGIN * delta)).ln();
     if k.is_nan() {
@@ -380,9 +381,8 @@ impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
             return;
         }
         // The lead orders' recursion is written out again rather than shared with the loop
-        // above through a generic helper: the helper wrote each new coefficient once and read
-        // it back for `T`, and the taylor-dd run took 17 % longer (5.2–5.3 against 4.4–4.6 s,
-        // 100×100, τ = 0.01, 1 thread).
+        // above through a generic helper: such a helper would write each new coefficient once
+        // and read it back for `T`, which slows taylor-dd runs (figures: docs/performance.md).
         let k0 = split - 1;
         let lead = &mut self.lead;
         for j in 0..=k0 {
@@ -567,7 +567,8 @@ fn lane_finite<T: Lanewise, const N: usize, const K: usize>(y: &Phase<T, N, K>, 
 }
 
 /// [`lane_finite`] of every lane at once: the same test of each number, without a branch per
-/// number (lane by lane it was a twentieth of a taylor-dd run at τ = 0.01).
+/// number (lane by lane it is a visible share of a taylor-dd run; figures:
+/// docs/performance.md).
 #[inline(always)]
 fn lanes_finite<T: Lanewise, const N: usize, const K: usize, const L: usize>(
     y: &Phase<T, N, K>,
@@ -790,8 +791,8 @@ pub struct TaylorLanes<'h, H, T: Lanewise, const N: usize, const K: usize, const
     t_prev: [T::Lane; L],
     steps: [u64; L],
     /// The energy of each lane's current state, computed for all lanes at once after a step
-    /// (the driver checks it after every step; lane by lane, gathering the state first, it
-    /// took 6 % of a taylor-dd run, and 2 % of the run went with it).
+    /// (the driver checks it after every step, and lane by lane, gathering the state first,
+    /// it is a visible share of a taylor-dd run; figures: docs/performance.md).
     energy: [T::Lane; L],
     /// With [`Self::screen_energy`]: the energy of each lane's state rounded to f64, formed
     /// after every step instead of `energy` (which is then computed when asked).
@@ -851,7 +852,8 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
 
     /// Forms each lane's energy after a step from its state rounded to f64 only
     /// ([`Self::energy_f64`]), and the energy in `T`'s precision when asked: in double-double
-    /// the energy at every step was a sixth of a taylor-dd step at δ = 1e-5.
+    /// the energy at every step is a large share of a taylor-dd step (figures:
+    /// docs/performance.md).
     pub fn screen_energy(&mut self) {
         self.energy_f64 = Some([0.0; L]);
     }
@@ -886,8 +888,8 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
 
     /// Scales the deviation vectors of every lane of `mask` to unit length in place, all at
     /// once, each lane by [`crate::adaptive::unit_vectors`]' operations; returns what it
-    /// returns for each such lane. (Lane by lane, gathering and scattering, it was an eighth
-    /// to a seventh of a run at τ = 0.01.)
+    /// returns for each such lane. (Lane by lane, gathering and scattering, it is a large
+    /// share of a run; figures: docs/performance.md.)
     #[inline(always)]
     pub fn unit_vectors(&mut self, mask: &[bool; L]) -> [f64; L]
     where
@@ -929,9 +931,8 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
     pub fn step(&mut self, t_end: &[Option<f64>; L]) -> [Option<Result<(), StepFailure>>; L] {
         let mut out = [None; L];
         let mut go = [false; L];
-        // In f64 lane by lane measured faster (the test is cheap there, and the branch-free
-        // form changed how the step around it compiled: 1.85 against 1.67 s, f64 Taylor,
-        // 100×100, τ = 0.01, t = 1e3).
+        // In f64 lane by lane is faster (the test is cheap there, and the branch-free form
+        // changes how the step around it compiles; figures: docs/performance.md).
         let finite: [bool; L] = if T::EXTENDED {
             lanes_finite::<T, N, K, L>(&self.y)
         } else {

@@ -304,8 +304,8 @@ fn settled_crossings_lie_within_their_bound() {
     use salient_core::section::{locate_upward, locate_upward_lanes_settling, Crossing};
     use std::cell::RefCell;
     let ham = HenonHeiles;
-    // (scheme, τ, the share of crossings that must settle at once, a little below the share
-    // measured on 2026-11-26)
+    // (scheme, τ, the share of crossings that must settle at once, a little below the
+    // measured share)
     let cases = [
         ("sbab2c", 0.5, 0.99),
         ("sbab2c", 1.0, 0.9),

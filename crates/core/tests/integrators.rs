@@ -208,7 +208,7 @@ fn sbab2c_conserves_r1_energy_without_secular_growth() {
 
 #[test]
 fn straight_line_periodic_orbit_returns_after_its_exact_period() {
-    // Through (q2, p2) = (0, ±1/4): period 7.5432594126750786 (research note §7.2, mpmath).
+    // Through (q2, p2) = (0, ±1/4): period 7.5432594126750786 (computed with mpmath).
     const PERIOD: f64 = 7.543_259_412_675_078_6;
     let ham = HenonHeiles;
     let map = TangentMap::new(&ham, &Scheme::by_name("srkn14a").unwrap(), 1e-3);

@@ -31,7 +31,7 @@ fn r1_is_regular_at_1e5() {
     assert_eq!(res.status, Status::Ok);
     assert_eq!(res.class, Some(Class::Regular));
     assert!(res.sali > 1e-2, "SALI(1e5) = {}", res.sali);
-    // The research note reports SALI(1e5) = 0.259 for this orbit, method and step.
+    // The reference computation gives SALI(1e5) = 0.259 for this orbit, method and step.
     assert!((res.sali - 0.259).abs() < 0.05, "SALI(1e5) = {}", res.sali);
     // A regular orbit's finite-time mLE decays like ln t / t.
     assert!(res.mle < 1e-3, "mLE = {}", res.mle);
@@ -69,7 +69,7 @@ fn c1_is_chaotic_and_stops_early_before_t_1000() {
 
 #[test]
 fn c1_lyapunov_exponent_is_near_the_chaotic_sea_value() {
-    // λ ≈ 0.045 ± 0.002 at H = 1/8 (research note §7.4, SRKN14a τ = 0.1, t = 1e7; C1 gives
+    // λ ≈ 0.045 ± 0.002 at H = 1/8 (SRKN14a τ = 0.1, t = 1e7; C1 gives
     // 0.0471 at t = 1e6). Finite-time values of one chaotic orbit depend on its round-off
     // history, so the band is 10 % at t = 1e6.
     let ham = HenonHeiles;

@@ -141,7 +141,7 @@ fn both_protocols_agree_and_taylor_matches_srkn14a() {
     let a = taylor(r1(), 1e-15, Protocol::Restart, &cfg, &Requests::default());
     let b = taylor(r1(), 1e-15, Protocol::Free, &cfg, &Requests::default());
     assert!((a.sali - b.sali).abs() < 1e-8, "{} vs {}", a.sali, b.sali);
-    // heyoka at tol 1e-15 gives SALI(1e3) = 1.2535960837 (research note §4).
+    // heyoka at tol 1e-15 gives SALI(1e3) = 1.2535960837.
     assert!((a.sali - 1.253_596_083_7).abs() < 1e-8, "{}", a.sali);
     // End state and SALI at t = 100 against SRKN14a τ = 1e-3.
     let tm = srkn14a_r1(100.0, &Requests::default());

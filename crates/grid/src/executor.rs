@@ -28,11 +28,8 @@ pub const LANES: usize = 4;
 /// Orbits advanced together in one batched stepper in `mode`. Full mode takes what suits the
 /// host ([`Isa::lanes`]: 8 with AVX-512). In fast PSS the lanes in flight bound the
 /// speculation, so it takes [`LANES`] (4) on every host: 8 lanes step faster per orbit-step
-/// but drop more steps. Until 2026-11-26 fast PSS took 8 lanes below τ = 0.02, where 8 AVX-512
-/// lanes (3.8 ns per orbit-step) beat 4 pinned ones (6.7 ns) despite dropping 45 % of their
-/// steps; since 4 lanes also run in the AVX-512 copy (4.4 ns), 4 win there too: 400×400,
-/// τ = 0.01, t = 1e4, 2 threads, 3.63–4.40 s against 4.34–4.80 s (alternated), 29 % of the
-/// steps dropped instead of 45 %, the same labels.
+/// but drop more steps, and 4 lanes run in the AVX-512 copy too, so 4 win at small τ as well
+/// (figures: docs/performance.md).
 pub fn lanes(mode: Mode) -> usize {
     match mode {
         Mode::FastPss => LANES,
@@ -254,8 +251,8 @@ impl Claims {
             .find(|&k| seen[k] == u32::MAX)
             .or_else(|| (0..CROSSERS).find(|&k| !self.is_running(canonical[seen[k] as usize])));
         // A plain store: when two threads race for a slot one hint is lost, never a label, and
-        // a locked compare-exchange stalled the thread on every note (a sixth of the samples
-        // of this function at τ = 0.5).
+        // a locked compare-exchange stalls the thread on every note (figures:
+        // docs/performance.md).
         if let Some(k) = free {
             slots[k].store(pos, Ordering::Relaxed);
         }
@@ -273,10 +270,10 @@ impl Claims {
     /// The cell of the earliest orbit before `cell` in canonical order that crossed it while
     /// running and still runs.
     ///
-    /// One slot per cell, the earliest crosser, was all this remembered until 2026-11-26: once
-    /// that orbit was abandoned, a running later one that had crossed the cell too was
-    /// forgotten, and the cell's orbit was started and abandoned when the other crossed it again
-    /// (400×400, τ = 0.01, t = 1e4: 309 orbits, 1.3e8 of the run's 1.2e9 steps).
+    /// Up to [`CROSSERS`] per cell: with the earliest crosser alone, once that orbit is
+    /// abandoned a running later one that crossed the cell too is forgotten, and the cell's
+    /// orbit is started and abandoned when the other crosses it again (figures:
+    /// docs/performance.md).
     fn running_crosser(&self, grid: &Grid, cell: u32) -> Option<u32> {
         let canonical = grid.canonical();
         self.crossed_by[cell as usize]
@@ -295,11 +292,10 @@ impl Claims {
     /// does not, the cell is integrated again later: abandoning costs the steps done so far,
     /// running on costs the rest.)
     ///
-    /// The pending outcomes matter because [`Claims::crosser`] keeps only the earliest orbit
-    /// that crossed a cell while running: once that one has ended, a later regular orbit of
-    /// the same torus family that crossed the cell too is forgotten, and the cell's orbit
-    /// used to run to its end and be dropped (400×400, τ = 0.01: 351 regular orbits run in
-    /// full and dropped, 45 % of the dropped steps; 109 with this).
+    /// The pending outcomes matter because [`Claims::running_crosser`] knows only orbits that
+    /// still run: once an orbit that crossed the cell has ended, only its pending outcome
+    /// tells, and without it the cell's orbit would run to its end and be dropped (figures:
+    /// docs/performance.md).
     fn probably_labelled(&self, grid: &Grid, cell: u32) -> bool {
         if self.is_pending_claimed(cell) {
             return true;
@@ -710,9 +706,8 @@ impl Drop for FailOnPanic<'_> {
 }
 
 /// How many cells a [`Forecast`] defers [`Engine::take_needed`] passes over, looking for one
-/// it does not, before it takes the first of them. 400×400, tm-sbab2c τ = 0.01, t = 1e4 with
-/// τ = 0.5's labellers (a poor forecast): 4.5–6.2 s with 4 096, 3.3–4.5 s with 256, 3.9–4.5 s
-/// with none; with f64 Taylor's (a good one) 2.1–2.3 s either way.
+/// it does not, before it takes the first of them: bounded, so that a poor forecast holds
+/// back few cells, while a good one does as well with it (figures: docs/performance.md).
 const FORECAST_PATIENCE: usize = 256;
 
 /// What a lane asking for work gets from [`Engine::take_needed`].
@@ -724,10 +719,8 @@ enum Needed {
 
 /// How many times a thread tries the ledger lock before it sleeps on it, when every thread
 /// of the pool has a core. The lock is held for microseconds, while a thread put to sleep on
-/// it waits far longer for its wake-up: 400×400, τ = 0.5, t = 1e4, 2 threads, 1 100–1 200
-/// futex calls and 350–380 context switches per run with the plain lock, 19 and 45 with this;
-/// wall 0.182 → 0.173 s (medians of 20 alternated runs, 17 of 20 pairs faster). At τ = 0.01 the
-/// lock is taken far less often per second and the run is as fast either way.
+/// it waits far longer for its wake-up; spinning first saves most futex calls and context
+/// switches (figures: docs/performance.md).
 const LEDGER_SPINS: u32 = 20_000;
 
 /// [`LEDGER_SPINS`] when the current pool has a core per thread, else 0: a thread spinning
@@ -758,10 +751,9 @@ impl<P> Engine<'_, P> {
 impl<P: FnMut(&Ledger)> Engine<'_, P> {
     /// The first cell the ledger needs that no lane runs and no other orbit is certain or
     /// likely to label, marked running. `dry_since` holds [`Claims::stopped`] as of the last
-    /// fruitless search: a fruitless search walks the whole rest of the grid (a quarter of a
-    /// millisecond at 400×400), and idle lanes ask at every poll (without this, 8-lane
-    /// drivers spent 44 % of a τ = 0.01 run searching), so it is repeated only after an
-    /// orbit stops.
+    /// fruitless search: a fruitless search walks the whole rest of the grid, and idle lanes
+    /// ask at every poll, so repeated searches would take a large share of a run (figures:
+    /// docs/performance.md); it is repeated only after an orbit stops.
     fn take_needed(&self, dry_since: &mut Option<u64>) -> Needed {
         if self.failed.load(Ordering::Relaxed) {
             return Needed::Done;
@@ -935,9 +927,9 @@ impl CrossingBook {
 }
 
 /// A set of cells, open-addressed: after its first orbits a thread's sets have grown to what
-/// its orbits need and allocate no more. It replaced a 64-entry direct-mapped cache of recent
-/// cells, whose misses sent a crossing to the shared arrays again (400×400, τ = 0.5: those
-/// reads were 8 % of the run once a cell kept four crossers).
+/// its orbits need and allocate no more. A set rather than a small direct-mapped cache of
+/// recent cells: a cache's misses send a crossing to the shared arrays again, a visible cost
+/// once a cell keeps several crossers (figures: docs/performance.md).
 #[derive(Default)]
 struct CellSet {
     slots: Vec<u32>,
@@ -1054,14 +1046,12 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
 /// ledger needs (skipping cells in flight or certain to be labelled) and offer each outcome
 /// the moment its orbit ends; orbits whose cell the frontier orbit crosses are abandoned.
 /// Speculation is bounded by the lanes in flight. Each thread steps its lanes and locates
-/// and books their crossings itself. (At τ ≥ 0.35 threads worked in pairs, one stepping and
-/// one locating, until 2026-11-26; once a cell crossed by any running orbit was held back,
-/// one driver per thread dropped little more than pairs and was faster: 400×400, t = 1e4,
-/// 2 threads, alternated, τ = 0.35 0.32 against 0.36 s, τ = 0.5 0.30 against 0.36 s, τ = 1
-/// 0.16 against 0.25 s.) Full mode, and fast PSS with checkpoints, go in rounds of `window` cells. Either way the
-/// labels are those of the sequential rule. (Adaptive fast PSS went in rounds of 8 cells per
-/// thread until 2026-11-24, when the streaming feed with claims and abandonment dropped 2–3 %
-/// of the steps instead of half: dop853 400×400 τ = 0.5 t = 1e4 4.8 → 2.4 s.)
+/// and books their crossings itself: with a cell crossed by any running orbit held back, one
+/// driver per thread drops little more than threads paired as stepper and locator, and is
+/// faster. Adaptive methods stream too: rounds of cells drop far more of their steps than
+/// the streaming feed with claims and abandonment (figures: docs/performance.md). Full mode,
+/// and fast PSS with checkpoints, go in rounds of `window` cells. Either way the labels are
+/// those of the sequential rule.
 pub fn run_embedded(
     grid: &Grid,
     cell_run: &CellRun,
@@ -1075,8 +1065,7 @@ pub fn run_embedded(
 /// [`run_embedded`] with the labellers of a similar finished run ([`Ledger::forecast`]) as a
 /// hint for streaming fast PSS: its lanes take last the cells forecast to be labelled by an
 /// orbit not yet committed. The labels are the same with any forecast or none; a good one
-/// saves most of the speculative work (400×400, τ = 0.01, t = 1e4: f64 Taylor drops 29 % of
-/// its steps alone and none with DOP853's labellers, DOP853 1 % with TM-SBAB2C's). Ignored
+/// saves most of the speculative work (figures: docs/performance.md). Ignored
 /// where [`takes_forecast`] says no, and when it was made on a grid of another size.
 pub fn run_embedded_forecast(
     grid: &Grid,
@@ -1098,8 +1087,8 @@ pub fn run_embedded_forecast(
         }
         return ledger;
     }
-    // Both are a few MB of per-cell arrays written before any orbit runs (2.9 → 2.0 ms of a
-    // 0.17 s run at 400×400).
+    // Both are a few MB of per-cell arrays written before any orbit runs, so they are built
+    // side by side (figures: docs/performance.md).
     let (claims, mut ledger) = rayon::join(|| Claims::new(grid), || Ledger::new(grid, mode));
     ledger.track_claim_changes();
     let shared = Mutex::new(Shared { ledger, progress });
@@ -1157,11 +1146,9 @@ fn finish<P>(shared: Mutex<Shared<P>>, claims: &Claims) -> Ledger {
 
 /// Whether [`run_embedded_forecast`] lets a forecast guide this run: streaming fast PSS whose
 /// threads keep several orbits in flight (lanes), the speculation a [`Forecast`] guides, unless
-/// `SALIENT_FORECAST=0`. An adaptive method one orbit at a time drops little (2–5 % of its
-/// steps at τ = 0.5), and there a forecast only sends it further ahead: 400×400, τ = 0.5,
-/// t = 1e5, DOP853 with TM-SBAB2C's labellers 19.0 → 22.2 s, f64 Taylor with DOP853's 29.0 →
-/// 30.9 s (at τ = 0.5 these methods name the same labeller for only 21–29 % of the cells;
-/// taylor-dd, in lanes, with f64 Taylor's, 99.5 %: 47.0 → 38.7 s).
+/// `SALIENT_FORECAST=0`. An adaptive method one orbit at a time drops little, and there a
+/// forecast only sends it further ahead and slows the run, while lanes gain from a good one
+/// (figures: docs/performance.md).
 pub fn takes_forecast(cell_run: &CellRun, mode: Mode) -> bool {
     let (method, config) = (&cell_run.run.method, &cell_run.config);
     let several_in_flight = matches!(method, Method::TangentMap(_))

@@ -1,6 +1,5 @@
 //! The fast-PSS ledger: accepts orbit outcomes in any order and commits them in canonical
-//! order, so the labels equal those of the sequential rule of DESIGN.md whatever the arrival
-//! order:
+//! order, so the labels equal those of the sequential rule whatever the arrival order:
 //!
 //! walk compatible cells in canonical order; skip a labelled cell; otherwise integrate its
 //! orbit and give its class to its own cell and to every still-unlabelled compatible cell its
@@ -57,8 +56,8 @@ const PENDING: u8 = 4;
 
 /// Per cell, how many pending outcomes before it in canonical order crossed it. A count answers
 /// [`Ledger::is_claimed`], the only question asked of the claims, at one increment and one
-/// decrement per visited cell (a list of claimers per cell cost an allocation, a search and
-/// scattered reads: a quarter of the coordinator's CPU).
+/// decrement per visited cell (a list of claimers per cell costs an allocation, a search and
+/// scattered reads, a large share of the coordinator's CPU; figures: docs/performance.md).
 #[derive(Clone, Debug)]
 struct ClaimCounts {
     early: Vec<u32>,
@@ -92,9 +91,8 @@ impl ClaimCounts {
 
 /// Who labelled each cell in a finished fast-PSS run ([`Ledger::forecast`]), as a forecast of
 /// who will label it in a similar one: same grid, τ and t_final, another method. Integrators
-/// that agree on the orbits agree on the labellers (400×400, τ = 0.01, t = 1e4: DOP853 and
-/// f64 Taylor name the same labeller for 99.4 % of the cells, TM-SBAB2C and DOP853 for 65 %,
-/// the costly regular orbits foremost), so a run's lanes can leave alone the cells that an
+/// that agree on the orbits agree on the labellers, the costly regular orbits foremost
+/// (figures: docs/performance.md), so a run's lanes can leave alone the cells that an
 /// earlier orbit, not yet committed, is forecast to label. A scheduling hint only: the ledger
 /// alone decides the labels, so a wrong forecast costs time, never results.
 #[derive(Clone, Debug, PartialEq)]
@@ -129,7 +127,7 @@ pub struct Ledger {
     position: Vec<u32>,
     /// Per cell: [`COMPATIBLE`], [`LABELLED`] and [`PENDING`]. The hot checks read these
     /// bytes (160 kB at 400×400, cache-resident): a commit visits ~100 cells, and a cache
-    /// miss on each was most of its cost.
+    /// miss on each would be most of its cost.
     flags: Vec<u8>,
     /// Per labelled cell, the index in `committed` of the outcome that labelled it (`u32::MAX`:
     /// none). A commit writes 4 bytes per cell it labels rather than a copy of the label.

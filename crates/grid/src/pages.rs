@@ -7,9 +7,9 @@
 /// into the same `calloc`) starts as pages that all map the kernel's shared zero page. The
 /// first write to each is a copy-on-write fault, and in a process whose threads run on
 /// several cores the kernel must then flush that page from every other core's TLB: an
-/// interrupt to each, a VM exit on a virtual machine, while the interrupted thread was
-/// stepping orbits. The engine's per-cell arrays took 40–470 of these per 400×400 fast-PSS
-/// run on 2 threads (`/proc/interrupts`, TLB shootdowns; 9–13 with this), 8 on one thread.
+/// interrupt to each, a VM exit on a virtual machine, while the interrupted thread steps
+/// orbits. The engine's per-cell arrays would take up to hundreds of these in a fast-PSS run
+/// (figures: docs/performance.md).
 pub(crate) fn owned<T>(mut v: Vec<T>, make: impl Fn() -> T) -> Vec<T> {
     // 4 kB pages or larger: an element every 4 kB writes to each of them.
     let stride = (4096 / std::mem::size_of::<T>().max(1)).max(1);
@@ -29,7 +29,7 @@ mod tests {
     #[cfg(target_os = "linux")]
     fn minor_faults() -> u64 {
         let stat = std::fs::read_to_string("/proc/thread-self/stat").expect("thread stat");
-        // After the command name: state, ppid, pgrp, session, tty, tpgid, flags, minflt.
+        // After the command name: state, ppid, pgrp, sid, tty, tpgid, flags, minflt.
         let (_, rest) = stat.rsplit_once(')').expect("stat line");
         rest.split_whitespace()
             .nth(7)

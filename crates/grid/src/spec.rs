@@ -26,8 +26,35 @@ const MAX_AXIS: usize = 4000;
 pub const MAX_NAME_CHARS: usize = 128;
 /// Runs (members of the sweep) in one job.
 pub const MAX_RUNS: usize = 1024;
-/// Tiles per axis when the spec gives none (clipped to the cells).
+/// Cells per tile along each axis when the spec gives none (clipped to the cells).
 const DEFAULT_TILE: usize = 20;
+
+/// The spec's schema: each table ("" for the top level) with the keys it may hold, in the order
+/// error messages list them. The parser takes its allowed keys from here and refuses any other,
+/// so this is the one list of what a spec can say; `docs/spec.md` documents every key in it (a
+/// test holds the two equal).
+pub const SCHEMA: &[(&str, &[&str])] = &[
+    (
+        "",
+        &["name", "system", "grid", "sweep", "integration", "classify"],
+    ),
+    ("system", &["kind", "energy"]),
+    ("grid", &["cells", "tile", "mode", "q2", "p2"]),
+    ("sweep", &["method", "tau", "t_final", "delta"]),
+    ("integration", &["protocol", "deviation", "seed"]),
+    (
+        "classify",
+        &["regular", "chaotic", "early_stop", "energy_drift"],
+    ),
+];
+
+/// The keys [`SCHEMA`] allows in the table at `path` (none for a table it does not name).
+fn allowed_keys(path: &str) -> &'static [&'static str] {
+    SCHEMA
+        .iter()
+        .find(|(table, _)| *table == path)
+        .map_or(&[], |(_, keys)| keys)
+}
 
 pub use crate::ledger::Mode;
 
@@ -354,8 +381,9 @@ struct Table<'a> {
 }
 
 impl<'a> Table<'a> {
-    /// `v` as the table at `path`, refusing any key not in `allowed`.
-    fn new(v: &'a Value, path: &str, allowed: &[&str]) -> SpecResult<Table<'a>> {
+    /// `v` as the table at `path`, refusing any key [`SCHEMA`] does not allow there.
+    fn new(v: &'a Value, path: &str) -> SpecResult<Table<'a>> {
+        let allowed = allowed_keys(path);
         let Value::Object(obj) = v else {
             return Err(usage(if path.is_empty() {
                 format!("the spec must be a table of sections (got {})", describe(v))
@@ -419,33 +447,26 @@ impl<'a> Table<'a> {
         list(v, &path, read)
     }
 
-    fn opt_table(&self, key: &str, allowed: &[&str]) -> SpecResult<Option<Table<'a>>> {
+    fn opt_table(&self, key: &str) -> SpecResult<Option<Table<'a>>> {
         self.get(key)
-            .map(|v| Table::new(v, &self.path(key), allowed))
+            .map(|v| Table::new(v, &self.path(key)))
             .transpose()
     }
 
-    fn req_table(&self, key: &str, allowed: &[&str]) -> SpecResult<Table<'a>> {
-        self.opt_table(key, allowed)?
+    fn req_table(&self, key: &str) -> SpecResult<Table<'a>> {
+        self.opt_table(key)?
             .ok_or_else(|| usage(format!("the [{}] table is required", self.path(key))))
     }
 }
 
 /// Reads the spec's fields with their types; no ranges yet.
 fn read_raw(v: &Value) -> SpecResult<RawSpec> {
-    let top = Table::new(
-        v,
-        "",
-        &["name", "system", "grid", "sweep", "integration", "classify"],
-    )?;
-    let system = top.req_table("system", &["kind", "energy"])?;
-    let grid = top.req_table("grid", &["cells", "tile", "mode", "q2", "p2"])?;
-    let sweep = top.req_table("sweep", &["method", "tau", "t_final", "delta"])?;
-    let integration = top.opt_table("integration", &["protocol", "deviation", "seed"])?;
-    let classify = top.opt_table(
-        "classify",
-        &["regular", "chaotic", "early_stop", "energy_drift"],
-    )?;
+    let top = Table::new(v, "")?;
+    let system = top.req_table("system")?;
+    let grid = top.req_table("grid")?;
+    let sweep = top.req_table("sweep")?;
+    let integration = top.opt_table("integration")?;
+    let classify = top.opt_table("classify")?;
     Ok(RawSpec {
         name: top.opt("name", string)?,
         system: RawSystem {
@@ -942,6 +963,37 @@ t_final = [1e3]
         // The recorded source reads back to the same job.
         let json = serde_json::to_string(&j.source).unwrap();
         assert_eq!(parse(&json, true).unwrap(), j);
+    }
+
+    #[test]
+    fn the_schema_is_every_key_the_parser_reads() {
+        // `source` holds every field the parser reads (absent ones as null); GOOD has every table.
+        let source = parse(GOOD, false).unwrap().source;
+        let keys = |v: &Value| -> Vec<String> {
+            let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
+            k.sort();
+            k
+        };
+        let mut tables: Vec<&str> = SCHEMA.iter().map(|(t, _)| *t).collect();
+        tables.sort();
+        tables.dedup();
+        assert_eq!(tables.len(), SCHEMA.len(), "a table listed twice");
+        for (table, allowed) in SCHEMA {
+            let v = if table.is_empty() {
+                &source
+            } else {
+                &source[*table]
+            };
+            let mut want: Vec<String> = allowed.iter().map(|k| k.to_string()).collect();
+            want.sort();
+            assert_eq!(keys(v), want, "[{table}]");
+        }
+        // Every table the top level allows has its keys in SCHEMA.
+        for key in allowed_keys("") {
+            if source[*key].is_object() {
+                assert!(!allowed_keys(key).is_empty(), "[{key}]");
+            }
+        }
     }
 
     #[test]

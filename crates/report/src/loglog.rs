@@ -36,7 +36,7 @@ pub struct LogLogPlot<'a> {
     pub y_label: &'a str,
     pub lines: Vec<Line<'a>>,
     pub hlines: Vec<HLine<'a>>,
-    /// Optional text labels attached to points: (x, y, text) — used later for work-precision plots.
+    /// Optional text labels attached to points: (x, y, text), as work-precision plots use.
     pub point_labels: Vec<(f64, f64, String)>,
     /// Draw a marker at each point in addition to the connecting lines.
     pub markers: bool,

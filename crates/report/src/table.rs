@@ -58,7 +58,11 @@ impl Table {
     /// CSV with a header line; cells holding a comma, quote or newline are quoted.
     pub fn to_csv(&self) -> String {
         let cell = |s: &String| {
-            if s.contains([',', '"', '\n']) {
+            // "—" (nothing to show) reads well in Markdown; a CSV reader wants an empty field,
+            // which numeric columns parse as missing.
+            if s == NOTHING {
+                String::new()
+            } else if s.contains([',', '"', '\n']) {
                 format!("\"{}\"", s.replace('"', "\"\""))
             } else {
                 s.clone()
@@ -73,9 +77,20 @@ impl Table {
     }
 }
 
+/// What a table cell holds where there is nothing to show (a δ for a fixed-step method).
+pub const NOTHING: &str = "—";
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn nothing_is_an_empty_csv_field_and_a_dash_in_markdown() {
+        let mut t = Table::new(&["method", "delta"]);
+        t.push(vec!["tm-sbab2c".into(), NOTHING.into()]);
+        assert_eq!(t.to_csv(), "method,delta\ntm-sbab2c,\n");
+        assert!(t.to_markdown().contains("| —"));
+    }
 
     #[test]
     fn markdown_and_csv_render_and_escape() {

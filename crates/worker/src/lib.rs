@@ -46,9 +46,8 @@ pub struct Options {
 /// `hungry` (a lane idle with no leased cell waiting; the leases held then are only finishing
 /// their orbits). A fast-PSS lease is the next cells the coordinator's ledger needs; one asked
 /// for before a lane is free would take cells before the outcomes that may label them arrive,
-/// and measured slower (400×400 at t = 1e4 and 1e5: 0.94 and 3.9 s with one, 1.0–1.2 and
-/// 4.8 s with two). Full-mode tiles carry no such risk, and a second one keeps the threads
-/// busy across the round trip.
+/// and is slower (figures: docs/performance.md). Full-mode tiles carry no such risk, and a
+/// second one keeps the threads busy across the round trip.
 fn free_slots(held: usize, hungry: bool, one_at_a_time: bool, max: usize) -> usize {
     let cap = if one_at_a_time { 1 } else { max };
     let hungry = if hungry { HUNGRY_LEASES } else { 0 };
@@ -57,10 +56,8 @@ fn free_slots(held: usize, hungry: bool, one_at_a_time: bool, max: usize) -> usi
 
 /// Leases a hungry compute side asks for at once. A fast-PSS lease holds the wanted cells of
 /// one tile, often only a few of the batch it may hold, and every poll that carries reports
-/// waits for the coordinator's fsync (2–4 ms here) while the lanes run dry. 400×400 tm-sbab2c
-/// t = 1e4, 2 cores (2026-11-24), one against two leases: τ = 0.01 1 worker × 2 threads
-/// 5.9–6.1 vs 5.4–5.7 s, 2 × 1 7.1–8.0 vs 6.4–6.6 s; τ = 0.5 0.87–0.94 vs 0.77–0.79 s, 2 × 1
-/// 1.00–1.05 vs 0.91 s. Three dropped more and were no faster.
+/// waits for the coordinator's fsync while the lanes run dry. Two beat one; three drop more
+/// and are no faster (figures: docs/performance.md).
 const HUNGRY_LEASES: usize = 2;
 
 /// CPU time of this process (user + system) in seconds, from /proc on Linux; NaN elsewhere.
@@ -167,8 +164,8 @@ struct Signals {
     /// asks for its own outcomes to be relayed too.
     made: HashSet<(u64, u32)>,
     /// Outcomes of leases still running, for the next poll: a report that woke the network
-    /// side for every outcome made a poll (and a store commit) of each, and the coordinator
-    /// shares the cores.
+    /// side for every outcome would make a poll (and a store commit) of each, and the
+    /// coordinator shares the cores.
     partial: Vec<v1::TileReport>,
 }
 
@@ -218,10 +215,10 @@ fn lease_key(l: &v1::TileRef) -> LeaseKey {
 
 /// The compute side: runs every lease of one run through one stream of the tile executor
 /// ([`integrate_stream`]), so lanes freed by an ended orbit take the next leased cell at once
-/// whatever lease it came in, and a lease's outcomes go out as its orbits end. (Run lease by
-/// lease, each lease waited for its longest orbit with the other lanes idle: 400×400 at
-/// τ = 0.01, 1 worker × 2 threads, 11 s against 3.9 s embedded.) A lease for another run ends
-/// the stream when the cells already leased are done.
+/// whatever lease it came in, and a lease's outcomes go out as its orbits end (lease by lease,
+/// each lease would wait for its longest orbit with the other lanes idle; figures:
+/// docs/performance.md). A lease for another run ends the stream when the cells already
+/// leased are done.
 fn compute_thread(
     pool: rayon::ThreadPool,
     work: std::sync::mpsc::Receiver<Work>,
@@ -310,7 +307,8 @@ fn compute_thread(
 struct LeaseSource {
     state: Mutex<SourceState>,
     /// Entries waiting in the queue, readable without the lock: idle lanes ask every few
-    /// steps, and taking the lock for each (shared by all threads) was half the run.
+    /// steps, and taking the lock for each (shared by all threads) would be a large share of
+    /// the run (figures: docs/performance.md).
     waiting: AtomicUsize,
     /// `Done::Hungry` went out since the last lease came.
     hungry: AtomicBool,

@@ -11,7 +11,7 @@ pub fn ic(q2: f64, p2: f64) -> ([f64; 2], [f64; 2]) {
     on_section(&HenonHeiles, ENERGY, &[q2], &[p2]).expect("IC on the section")
 }
 
-/// The seed paper's named orbits (research/symplectic-sali.md §7.3).
+/// The seed paper's named orbits (Gerlach & Skokos, arXiv:1008.1890).
 pub fn r1() -> ([f64; 2], [f64; 2]) {
     ic(0.558, 0.0)
 }
