@@ -115,7 +115,7 @@ else
 fi
 
 # --- process management -----------------------------------------------------------------------
-# Each process gets its own session (setsid) so that a Ctrl-C in the terminal reaches only this
+# Each process is detached from the terminal (setsid) so that a Ctrl-C in the terminal reaches only this
 # script, which then stops the workers before the coordinator: workers that drain need it.
 detach=()
 if command -v setsid >/dev/null 2>&1; then detach=(setsid); fi
