@@ -145,7 +145,11 @@ fn read_only_outputs_and_stores_are_refused_before_any_work() {
     chmod(&out, 0o555);
     let Some(refused) = salient_unprivileged(&["run", &spec, "--out", out.to_str().unwrap()])
     else {
-        eprintln!("skipped: running as root without setpriv, no unprivileged user to test with");
+        // Straight to stderr: the test harness shows it even when the test passes.
+        let _ = std::io::Write::write_all(
+            &mut std::io::stderr(),
+            b"skipped: read-only refusals: running as root without setpriv, no unprivileged user\n",
+        );
         return;
     };
     let text = stderr(&refused);
