@@ -117,15 +117,22 @@ fn rpc_error(what: &str, e: tonic::Status) -> CliError {
         // Failures of the connection (no answer of the coordinator's) carry their causes and,
         // for the usual mistakes, a hint.
         Code::Unavailable | Code::Unknown | Code::Internal if e.source().is_some() => {
-            let url = COORDINATOR_URL.get().map_or("", String::as_str);
-            CliError::Runtime(format!("{what}: {}", explain_transport(url, &e)))
+            CliError::Runtime(format!(
+                "{what}: {}",
+                explain_transport(coordinator_url(), &e)
+            ))
         }
         _ => CliError::Runtime(format!("{what}: {} ({:?})", e.message(), e.code())),
     }
 }
 
-/// The coordinator this process talks to (one per command), for [`rpc_error`]'s hints.
+/// The coordinator this process talks to (one per command), set by [`connect`]: named in the
+/// hints of [`rpc_error`] and the reconnection messages of [`Away`].
 static COORDINATOR_URL: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+
+fn coordinator_url() -> &'static str {
+    COORDINATOR_URL.get().map_or("", String::as_str)
+}
 
 async fn connect(c: &Connection) -> CliResult<Client> {
     let _ = COORDINATOR_URL.set(c.coordinator.clone());
@@ -201,7 +208,7 @@ pub fn submit(args: SubmitArgs) -> CliResult<()> {
             }
             return Ok(());
         }
-        wait_finished(&mut client, &args.conn.coordinator, reply.job).await?;
+        wait_finished(&mut client, reply.job).await?;
         fetch_and_write(&mut client, reply.job, staged, true).await
     })
 }
@@ -290,7 +297,6 @@ fn run_label(r: &v1::RunProgress) -> String {
 }
 
 pub fn watch(args: JobArgs) -> CliResult<()> {
-    let url = args.conn.coordinator.clone();
     runtime_for(1)?.block_on(async {
         let mut client = connect(&args.conn).await?;
         let mut bars = Bars::new(std::io::stderr().is_terminal());
@@ -301,7 +307,7 @@ pub fn watch(args: JobArgs) -> CliResult<()> {
             let mut stream = match client.watch(v1::WatchRequest { job: args.job }).await {
                 Ok(s) => s.into_inner(),
                 Err(e) if is_transient(&e) => {
-                    away.pause("watch", &url, e).await?;
+                    away.pause("watch", e).await?;
                     continue;
                 }
                 Err(e) => return Err(rpc_error("watch", e)),
@@ -309,13 +315,13 @@ pub fn watch(args: JobArgs) -> CliResult<()> {
             loop {
                 match stream.message().await {
                     Ok(Some(msg)) => {
-                        away.back(&url);
+                        away.back();
                         bars.show(&msg);
                         last = Some(msg);
                     }
                     Ok(None) => break 'subscribe,
                     Err(e) if is_transient(&e) => {
-                        away.pause("watch", &url, e).await?;
+                        away.pause("watch", e).await?;
                         continue 'subscribe;
                     }
                     Err(e) => return Err(rpc_error("watch", e)),
@@ -401,16 +407,20 @@ pub fn cancel(args: JobArgs) -> CliResult<()> {
     })
 }
 
-async fn job_state(client: &mut Client, job: u64) -> CliResult<String> {
+/// The job's status as the coordinator answers it; `None` when it knows no such job.
+async fn job_status(client: &mut Client, job: u64) -> Result<Option<v1::JobStatus>, tonic::Status> {
     let reply = client
         .status(v1::StatusRequest { job: Some(job) })
+        .await?
+        .into_inner();
+    Ok(reply.jobs.into_iter().next())
+}
+
+/// The job's status, an unknown job being bad input.
+async fn known_job(client: &mut Client, job: u64) -> CliResult<v1::JobStatus> {
+    job_status(client, job)
         .await
         .map_err(|e| rpc_error("status", e))?
-        .into_inner();
-    reply
-        .jobs
-        .first()
-        .map(|j| j.state.clone())
         .ok_or_else(|| CliError::Usage(format!("no job {job}")))
 }
 
@@ -436,7 +446,8 @@ struct Away {
 impl Away {
     /// After a transient failure: waits a moment before the next try, or gives up once the
     /// coordinator has been away for [`RECONNECT_FOR`].
-    async fn pause(&mut self, what: &str, url: &str, e: tonic::Status) -> CliResult<()> {
+    async fn pause(&mut self, what: &str, e: tonic::Status) -> CliResult<()> {
+        let url = coordinator_url();
         let since = *self.since.get_or_insert_with(|| {
             tracing::warn!(coordinator = url, error = %e.message(), "coordinator out of reach; trying again");
             std::time::Instant::now()
@@ -452,30 +463,27 @@ impl Away {
         Ok(())
     }
 
-    fn back(&mut self, url: &str) {
+    fn back(&mut self) {
         if self.since.take().is_some() {
-            tracing::info!(coordinator = url, "coordinator reached again");
+            tracing::info!(coordinator = coordinator_url(), "coordinator reached again");
         }
     }
 }
 
 /// Waits until the job is done (an error if it ends otherwise), riding out coordinator
 /// restarts.
-async fn wait_finished(client: &mut Client, url: &str, job: u64) -> CliResult<()> {
+async fn wait_finished(client: &mut Client, job: u64) -> CliResult<()> {
     let mut away = Away::default();
     loop {
-        let state = match client.status(v1::StatusRequest { job: Some(job) }).await {
-            Ok(reply) => {
-                away.back(url);
-                reply
-                    .into_inner()
-                    .jobs
-                    .first()
-                    .map(|j| j.state.clone())
+        let state = match job_status(client, job).await {
+            Ok(status) => {
+                away.back();
+                status
                     .ok_or_else(|| CliError::Usage(format!("no job {job}")))?
+                    .state
             }
             Err(e) if is_transient(&e) => {
-                away.pause("status", url, e).await?;
+                away.pause("status", e).await?;
                 continue;
             }
             Err(e) => return Err(rpc_error("status", e)),
@@ -495,27 +503,14 @@ pub fn results(args: ResultsArgs) -> CliResult<()> {
         let mut client = connect(&args.conn).await?;
         let out = match args.out {
             Some(o) => o,
-            None => {
-                let name = client
-                    .status(v1::StatusRequest {
-                        job: Some(args.job),
-                    })
-                    .await
-                    .map_err(|e| rpc_error("status", e))?
-                    .into_inner()
-                    .jobs
-                    .first()
-                    .map(|j| j.name.clone())
-                    .ok_or_else(|| CliError::Usage(format!("no job {}", args.job)))?;
-                Path::new("out").join(name)
-            }
+            None => Path::new("out").join(known_job(&mut client, args.job).await?.name),
         };
         // Checked before waiting: a folder that cannot be written fails now, not after the job.
         let staged = Staged::begin(&out, "--out")?;
         if args.wait {
-            wait_finished(&mut client, &args.conn.coordinator, args.job).await?;
+            wait_finished(&mut client, args.job).await?;
         } else {
-            let state = job_state(&mut client, args.job).await?;
+            let state = known_job(&mut client, args.job).await?.state;
             if state != "done" {
                 return Err(CliError::Runtime(format!(
                     "job {} is {state}; results exist once it is done (use --wait)",

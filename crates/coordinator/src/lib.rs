@@ -281,11 +281,14 @@ impl ClientService for Handle {
 /// The gRPC method of a request (its path), put where the token check can name it: an
 /// interceptor sees metadata and extensions, not the URI.
 #[derive(Clone)]
-struct MethodPath(String);
+struct MethodPath(tonic::codegen::http::uri::PathAndQuery);
 
+/// Runs for every request (workers poll every few milliseconds): the path is shared, not
+/// copied (cloning a `PathAndQuery` bumps a reference count).
 fn tag_method<B>(mut req: tonic::codegen::http::Request<B>) -> tonic::codegen::http::Request<B> {
-    let path = MethodPath(req.uri().path().to_string());
-    req.extensions_mut().insert(path);
+    if let Some(path) = req.uri().path_and_query().cloned() {
+        req.extensions_mut().insert(MethodPath(path));
+    }
     req
 }
 
@@ -312,7 +315,7 @@ fn check_token(
         let method = req
             .extensions()
             .get::<MethodPath>()
-            .map_or("unknown", |m| m.0.as_str());
+            .map_or("unknown", |m| m.0.path());
         let presented = if got.is_some() {
             "a wrong token"
         } else {
