@@ -10,5 +10,5 @@ cd "$(dirname "$0")/.."
 cases=${1:-20000}
 [[ $cases =~ ^[1-9][0-9]*$ ]] || { echo "fuzz: CASES must be a positive integer" >&2; exit 2; }
 export PROPTEST_CASES=$cases
-time cargo test --release -p salient-grid --test spec_fuzz
-time cargo test --release -p salient-coordinator --test wire_fuzz
+time cargo test --release -p salient-grid --test integration spec_fuzz::
+time cargo test --release -p salient-coordinator --test integration wire_fuzz::

@@ -10,11 +10,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-cargo_test=(cargo test --release -p salient-tests --test hard_cases_numerics)
+cargo_test=(cargo test --release -p salient-tests --test integration)
 "${cargo_test[@]}" --no-run
 
 filter="${1:-}"
-mapfile -t tests < <("${cargo_test[@]}" -q -- --ignored --list 2>/dev/null |
+mapfile -t tests < <("${cargo_test[@]}" -q -- --ignored --list hard_cases_numerics:: 2>/dev/null |
     sed -n 's/: test$//p' | grep -F -- "$filter" || true)
 if [ "${#tests[@]}" -eq 0 ]; then
     echo "no ignored test matches '$filter'" >&2

@@ -3,6 +3,7 @@
 //! binary for a test).
 
 pub mod cluster;
+pub mod docs;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -21,7 +22,7 @@ pub fn salient_path() -> PathBuf {
     let bin = profile_dir.join(format!("salient{}", std::env::consts::EXE_SUFFIX));
     assert!(
         bin.exists(),
-        "{} is missing: build it first with `cargo build -p salient-cli` (scripts/test.sh does)",
+        "{} is missing: build it first with `cargo build --release -p salient-cli` (scripts/test.sh does)",
         bin.display()
     );
     bin

@@ -9,16 +9,14 @@
 //! 5. Large renormalisation intervals τ for the adaptive methods: finite deviation vectors
 //!    and the right Lyapunov exponent — and where the `restart` protocol runs out of range.
 //!
-//! The quick tests run with `cargo test -p salient-tests --test hard_cases_numerics`; the long ones are
-//! `#[ignore]`d and run by `scripts/stability.sh`, which prints what they measured. Every
-//! test prints its measurements (`--nocapture` shows them).
+//! The quick tests run with `cargo test --release -p salient-tests --test integration
+//! hard_cases_numerics::`; the long ones are `#[ignore]`d and run by `scripts/stability.sh`,
+//! which prints what they measured. Every test prints its measurements (`--nocapture` shows
+//! them).
 
 #![allow(clippy::excessive_precision)]
 
-#[path = "../../crates/core/tests/common/mod.rs"]
-mod common;
-
-use common::{c1, ic, r1, ENERGY};
+use crate::common::{c1, ic, r1, ENERGY};
 use salient_core::adaptive::Protocol;
 use salient_core::method::Method;
 use salient_core::orbit::{Class, OrbitConfig, OrbitResult, Requests, Status};
@@ -260,7 +258,7 @@ fn fig8_tight_tolerances_conserve_energy_and_agree() {
     let (ed, et) = (d14.energy_error_max.unwrap(), t14.energy_error_max.unwrap());
     assert!(ed < 1e-10, "dop853 δ=1e-14: max |ΔH/H| = {ed:e}");
     assert!(et < 1e-12, "taylor δ=1e-14: max |ΔH/H| = {et:e}");
-    let end = |a: &OrbitResult<2>, b: &OrbitResult<2>| common::end_distance(a, b);
+    let end = |a: &OrbitResult<2>, b: &OrbitResult<2>| crate::common::end_distance(a, b);
     let (tight, loose_d, loose_t) = (end(&d14, &t14), end(&d5, &d14), end(&t5, &d14));
     println!(
         "R1 t = 1e5 end-point distances: dop853/taylor δ=1e-14 {tight:.2e}; δ=1e-5 from \

@@ -4,29 +4,11 @@
 //! are named here and checked otherwise (the distributed tests run those commands; a spec that
 //! takes hours is parsed, not run).
 
+use salient_tests::docs::{read, root, sh_lines};
 use salient_tests::{salient, salient_path};
-use std::path::Path;
 
 fn readme() -> String {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
-    std::fs::read_to_string(root.join("README.md")).unwrap()
-}
-
-/// The lines of the README's fenced `sh` blocks, comments and blank lines left out.
-fn sh_lines(text: &str) -> Vec<String> {
-    let mut lines = Vec::new();
-    let mut inside = false;
-    for line in text.lines() {
-        if line.starts_with("```") {
-            inside = !inside && line.trim() == "```sh";
-            continue;
-        }
-        let command = line.split(" #").next().unwrap().trim();
-        if inside && !command.is_empty() && !command.starts_with('#') {
-            lines.push(command.trim_end_matches('&').trim().to_string());
-        }
-    }
-    lines
+    read("README.md")
 }
 
 /// Commands run against a coordinator: covered by tests/tests/distributed_cli.rs.
@@ -37,7 +19,7 @@ const HOURS_LONG: &[&str] = &["examples/table2.toml"];
 
 #[test]
 fn every_salient_example_in_the_readme_runs() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+    let root = root();
     let dir = tempfile::tempdir().unwrap();
     let mut ran = 0;
     for line in sh_lines(&readme()) {
@@ -123,7 +105,7 @@ fn the_quick_start_prints_the_table_the_readme_shows() {
         .expect("the quick start's output block");
     let shown = table_without_timings(block);
     assert_eq!(shown.len(), 2, "{block}");
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+    let root = root();
     let dir = tempfile::tempdir().unwrap();
     let out = salient(&[
         "run",

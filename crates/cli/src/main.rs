@@ -14,6 +14,11 @@ mod usage;
 use clap::{Parser, Subcommand};
 use std::io::IsTerminal;
 use std::process::ExitCode;
+use tracing::Level;
+use tracing_subscriber::filter::Targets;
+use tracing_subscriber::layer::SubscriberExt;
+use tracing_subscriber::util::SubscriberInitExt;
+use tracing_subscriber::Layer;
 
 #[derive(Parser)]
 #[command(
@@ -63,12 +68,14 @@ enum LogFormat {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    // Progress and diagnostics go to stderr through tracing; RUST_LOG overrides the level and
-    // SALIENT_LOG_FORMAT=json makes the lines machine-readable.
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
+    // Progress and diagnostics go to stderr through tracing; RUST_LOG (a level, or
+    // `target=level` pairs after an optional default level, comma-separated) overrides the
+    // level and SALIENT_LOG_FORMAT=json makes the lines machine-readable.
+    let filter: Targets = std::env::var("RUST_LOG")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| Targets::new().with_default(Level::INFO));
+    let layer = tracing_subscriber::fmt::layer()
         .with_writer(std::io::stderr)
         .with_target(false)
         .with_ansi(std::io::stderr().is_terminal());
@@ -76,10 +83,11 @@ fn main() -> ExitCode {
         Some(f) => matches!(f, LogFormat::Json),
         None => std::env::var("SALIENT_LOG_FORMAT").as_deref() == Ok("json"),
     };
+    let registry = tracing_subscriber::registry();
     if json {
-        builder.json().init();
+        registry.with(layer.json().with_filter(filter)).init();
     } else {
-        builder.init();
+        registry.with(layer.with_filter(filter)).init();
     }
     let result = match cli.command {
         Command::Orbit(args) => orbit::run(args),

@@ -1,7 +1,9 @@
 //! ns per step of the adaptive integrators on R1 with 2 deviation vectors (12 ODEs), natural
 //! steps, and ns per right-hand-side evaluation (DOP853 makes 12 per accepted step).
 
-use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+mod harness;
+
+use harness::Harness;
 use salient_core::dd::DoubleDouble;
 use salient_core::dop853::{rhs, Dop853, Dop853Config};
 use salient_core::orbit::initial_vectors;
@@ -19,58 +21,51 @@ fn r1() -> Phase<f64, 2, 2> {
     Phase { q, p, dq, dp }
 }
 
-fn benches(c: &mut Criterion) {
-    let mut g = c.benchmark_group("adaptive");
-    g.throughput(Throughput::Elements(1));
-    g.bench_function("rhs-evaluation", |b| {
-        b.iter(|| rhs(&HenonHeiles, black_box(&r1())))
+fn main() {
+    let h = Harness::from_args();
+    h.case("adaptive/rhs-evaluation", 1, "evaluation", || {
+        rhs(&HenonHeiles, black_box(&r1()))
     });
-    g.throughput(Throughput::Elements(STEPS));
     for delta in [1e-10, 1e-13] {
-        g.bench_function(BenchmarkId::new("dop853-step", delta), |b| {
-            b.iter(|| {
+        h.case(
+            &format!("adaptive/dop853-step/{delta:e}"),
+            STEPS,
+            "step",
+            || {
                 let mut d = Dop853::new(&HenonHeiles, Dop853Config::with_delta(delta), 0.0, r1());
                 for _ in 0..STEPS {
                     d.step(f64::INFINITY, None).unwrap();
                 }
                 d.evaluations
-            })
-        });
+            },
+        );
     }
     for delta in [1e-10, 1e-15] {
-        g.bench_function(BenchmarkId::new("taylor-step", delta), |b| {
-            b.iter(|| {
+        h.case(
+            &format!("adaptive/taylor-step/{delta:e}"),
+            STEPS,
+            "step",
+            || {
                 let mut t = Taylor::new(&HenonHeiles, delta, 0.0, r1());
                 for _ in 0..STEPS {
                     t.step(f64::INFINITY).unwrap();
                 }
                 t.t()
-            })
-        });
+            },
+        );
     }
-    g.throughput(Throughput::Elements(100));
-    g.bench_function(BenchmarkId::new("taylor-dd-step", 1e-28), |b| {
-        let y = r1();
-        let dd = Phase {
-            q: y.q.map(DoubleDouble::from_f64),
-            p: y.p.map(DoubleDouble::from_f64),
-            dq: y.dq.map(|v| v.map(DoubleDouble::from_f64)),
-            dp: y.dp.map(|v| v.map(DoubleDouble::from_f64)),
-        };
-        b.iter(|| {
-            let mut t = Taylor::new(&HenonHeiles, 1e-28, 0.0, dd);
-            for _ in 0..100 {
-                t.step(f64::INFINITY).unwrap();
-            }
-            t.t()
-        })
+    let y = r1();
+    let dd = Phase {
+        q: y.q.map(DoubleDouble::from_f64),
+        p: y.p.map(DoubleDouble::from_f64),
+        dq: y.dq.map(|v| v.map(DoubleDouble::from_f64)),
+        dp: y.dp.map(|v| v.map(DoubleDouble::from_f64)),
+    };
+    h.case("adaptive/taylor-dd-step/1e-28", 100, "step", || {
+        let mut t = Taylor::new(&HenonHeiles, 1e-28, 0.0, dd);
+        for _ in 0..100 {
+            t.step(f64::INFINITY).unwrap();
+        }
+        t.t()
     });
-    g.finish();
 }
-
-criterion_group! {
-    name = adaptive;
-    config = Criterion::default().sample_size(20).measurement_time(std::time::Duration::from_secs(3));
-    targets = benches
-}
-criterion_main!(adaptive);

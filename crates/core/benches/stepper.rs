@@ -2,7 +2,9 @@
 //! SIMD lanes (throughput-bound), on the pinned target level and, where the host has it,
 //! AVX-512. Throughput is reported per orbit-step.
 
-use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+mod harness;
+
+use harness::Harness;
 use salient_core::batch::{integrate_batch_on, Isa};
 use salient_core::orbit::{integrate, OrbitConfig, Requests};
 use salient_core::section::on_section;
@@ -11,22 +13,17 @@ use std::hint::black_box;
 
 const STEPS: u64 = 20_000;
 
-fn single(c: &mut Criterion) {
+fn single(h: &Harness) {
     let ham = HenonHeiles;
-    let mut g = c.benchmark_group("single-orbit");
-    g.throughput(Throughput::Elements(STEPS));
     for name in ["sbab2c", "saba2c", "srkn14a"] {
         let tau = 0.05;
         let map = TangentMap::new(&ham, &Scheme::by_name(name).unwrap(), tau);
         let (q, p) = on_section(&ham, 0.125, &[0.558], &[0.0]).unwrap();
         let cfg = OrbitConfig::new(tau, STEPS as f64 * tau);
-        g.bench_function(BenchmarkId::new("tm", name), |b| {
-            b.iter(|| {
-                integrate::<_, 2, 2>(&map, black_box(q), black_box(p), &cfg, &Requests::default())
-            })
+        h.case(&format!("single-orbit/tm/{name}"), STEPS, "step", || {
+            integrate::<_, 2, 2>(&map, black_box(q), black_box(p), &cfg, &Requests::default())
         });
     }
-    g.finish();
 }
 
 fn regular_ics(n: usize) -> Vec<([f64; 2], [f64; 2])> {
@@ -36,10 +33,7 @@ fn regular_ics(n: usize) -> Vec<([f64; 2], [f64; 2])> {
         .collect()
 }
 
-fn batched<const L: usize>(
-    g: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>,
-    isa: Isa,
-) {
+fn batched<const L: usize>(h: &Harness, isa: Isa) {
     let ham = HenonHeiles;
     let map = TangentMap::new(&ham, &Scheme::by_name("sbab2c").unwrap(), 0.05);
     let ics = regular_ics(32);
@@ -48,8 +42,11 @@ fn batched<const L: usize>(
         Isa::Pinned => "sbab2c-lanes-pinned",
         Isa::Avx512 => "sbab2c-lanes-avx512",
     };
-    g.bench_function(BenchmarkId::new(name, L), |b| {
-        b.iter(|| {
+    h.case(
+        &format!("batch/{name}/{L}"),
+        STEPS * 32,
+        "orbit-step",
+        || {
             let mut sum = 0.0;
             integrate_batch_on::<_, 2, 2, L>(
                 isa,
@@ -60,26 +57,18 @@ fn batched<const L: usize>(
                 |_, r| sum += r.sali,
             );
             sum
-        })
-    });
+        },
+    );
 }
 
-fn batch(c: &mut Criterion) {
-    let mut g = c.benchmark_group("batch");
-    g.throughput(Throughput::Elements(STEPS * 32));
-    batched::<1>(&mut g, Isa::Pinned);
-    batched::<4>(&mut g, Isa::Pinned);
-    batched::<8>(&mut g, Isa::Pinned);
+fn main() {
+    let h = Harness::from_args();
+    single(&h);
+    batched::<1>(&h, Isa::Pinned);
+    batched::<4>(&h, Isa::Pinned);
+    batched::<8>(&h, Isa::Pinned);
     if Isa::Avx512.available() {
-        batched::<8>(&mut g, Isa::Avx512);
-        batched::<16>(&mut g, Isa::Avx512);
+        batched::<8>(&h, Isa::Avx512);
+        batched::<16>(&h, Isa::Avx512);
     }
-    g.finish();
 }
-
-criterion_group! {
-    name = benches;
-    config = Criterion::default().sample_size(20).measurement_time(std::time::Duration::from_secs(3));
-    targets = single, batch
-}
-criterion_main!(benches);

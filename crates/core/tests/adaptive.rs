@@ -1,9 +1,7 @@
 //! DOP853 on orbits with their deviation vectors: both protocols, cross-method agreement,
 //! named orbits, crossings from dense output and the energy behaviour of the paper's Table 1.
 
-mod common;
-
-use common::{c1, end_distance, r1, srkn14a_r1};
+use crate::common::{c1, end_distance, r1, srkn14a_r1};
 use salient_core::adaptive::{integrate_adaptive, Dop853Orbit, Protocol};
 use salient_core::dop853::{Dop853, Dop853Config};
 use salient_core::orbit::{

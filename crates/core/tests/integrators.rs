@@ -3,9 +3,7 @@
 
 #![allow(clippy::needless_range_loop, clippy::excessive_precision)]
 
-mod common;
-
-use common::{dist, ic, r1};
+use crate::common::{dist, ic, r1};
 use salient_core::orbit::{integrate, OrbitConfig, Requests};
 use salient_core::tangent::{Phase, Stepping};
 use salient_core::{Hamiltonian, HenonHeiles, Scheme, TangentMap};

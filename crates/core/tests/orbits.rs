@@ -3,9 +3,7 @@
 
 #![allow(clippy::needless_range_loop, clippy::excessive_precision)]
 
-mod common;
-
-use common::{c1, ic, r1, ENERGY};
+use crate::common::{c1, ic, r1, ENERGY};
 use proptest::prelude::*;
 use salient_core::orbit::{integrate, Class, Deviation, OrbitConfig, Requests, Status};
 use salient_core::section::p1_squared;

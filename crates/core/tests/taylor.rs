@@ -1,9 +1,7 @@
 //! The Taylor method: exactness on polynomial solutions, coefficients against finite
 //! differences, agreement with other methods, both protocols, and double-double accuracy.
 
-mod common;
-
-use common::{c1, end_distance, r1, srkn14a_r1};
+use crate::common::{c1, end_distance, r1, srkn14a_r1};
 use salient_core::adaptive::{integrate_adaptive, Protocol, TaylorOrbit};
 use salient_core::dd::DoubleDouble;
 use salient_core::dop853::{rhs, Dop853, Dop853Config};

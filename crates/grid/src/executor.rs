@@ -43,7 +43,7 @@ fn drive(
     config: &OrbitConfig,
     requests: &Requests,
     mode: Mode,
-    feed: &mut impl BatchFeed<2>,
+    feed: &mut GridFeed<'_, '_>,
 ) {
     match lanes(mode) {
         8 => integrate_feed::<_, 2, 2, 8>(map, config, requests, feed),
@@ -463,16 +463,19 @@ pub fn integrate_cells(grid: &Grid, cell_run: &CellRun, mode: Mode, cells: &[u32
     let finished: Vec<(usize, Outcome)> = (0..drivers)
         .into_par_iter()
         .flat_map_iter(|_| {
-            let mut feed = CellsFeed {
+            let mut feed = GridFeed::Cells(CellsFeed {
                 grid,
                 cell_run,
                 checkpoints: &checkpoints,
                 cells,
                 cursor: &cursor,
                 done: Vec::new(),
-            };
+            });
             drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
-            feed.done
+            match feed {
+                GridFeed::Cells(feed) => feed.done,
+                _ => unreachable!("a cells feed stays one"),
+            }
         })
         .collect();
     let mut out: Vec<Option<Outcome>> = vec![None; cells.len()];
@@ -509,7 +512,7 @@ fn drive_feed(
     mode: Mode,
     map: Option<&TangentMap<'_, HenonHeiles>>,
     requests: &Requests,
-    feed: &mut impl BatchFeed<2>,
+    feed: &mut GridFeed<'_, '_>,
 ) {
     match map {
         Some(map) => drive(map, &cell_run.config, requests, mode, feed),
@@ -571,13 +574,13 @@ pub fn integrate_stream(
     cell_run: &CellRun,
     mode: Mode,
     local: &LocalLedger,
-    source: &impl CellSource,
+    source: &dyn CellSource,
 ) {
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
     let map = tangent_map(cell_run);
     rayon::broadcast(|_| {
-        let mut feed = StreamFeed {
+        let mut feed = GridFeed::Stream(StreamFeed {
             grid,
             cell_run,
             checkpoints: &checkpoints,
@@ -585,24 +588,24 @@ pub fn integrate_stream(
             claims: local.claims(),
             source,
             insisted: Vec::new(),
-        };
+        });
         drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
     });
 }
 
 /// A driver's feed from a [`CellSource`]; orbits are known by their entry.
-struct StreamFeed<'a, S> {
+struct StreamFeed<'a> {
     grid: &'a Grid,
     cell_run: &'a CellRun,
     checkpoints: &'a [u64],
     local: &'a LocalLedger,
     claims: &'a Claims,
-    source: &'a S,
+    source: &'a dyn CellSource,
     /// Entries of this driver's lanes handed out as [`Take::Insist`].
     insisted: Vec<usize>,
 }
 
-impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
+impl BatchFeed<2> for StreamFeed<'_> {
     fn next(&mut self, all_idle: bool) -> Feed<2> {
         let (claims, grid) = (self.claims, self.grid);
         // Dropped cells are left without an outcome: the coordinator leases them again if it
@@ -672,18 +675,18 @@ impl<S: CellSource> BatchFeed<2> for StreamFeed<'_, S> {
 }
 
 /// What the embedded fast-PSS engine shares between its drivers.
-struct Shared<P> {
+struct Shared<'p> {
     ledger: Ledger,
-    progress: P,
+    progress: &'p mut (dyn FnMut(&Ledger) + Send + 'p),
 }
 
 /// What every thread of the embedded fast-PSS engine works against.
-struct Engine<'a, P> {
+struct Engine<'a, 'p> {
     grid: &'a Grid,
     cell_run: &'a CellRun,
     checkpoints: &'a [u64],
     claims: &'a Claims,
-    shared: &'a Mutex<Shared<P>>,
+    shared: &'a Mutex<Shared<'p>>,
     /// Who labelled each cell in a similar run: cells forecast to be labelled by an orbit not
     /// yet committed are taken last.
     forecast: Option<&'a Forecast>,
@@ -734,9 +737,9 @@ fn ledger_spins() -> u32 {
     }
 }
 
-impl<P> Engine<'_, P> {
+impl<'p> Engine<'_, 'p> {
     /// The ledger, locked: tried [`Engine::spins`] times before the thread sleeps on it.
-    fn lock_ledger(&self) -> MutexGuard<'_, Shared<P>> {
+    fn lock_ledger(&self) -> MutexGuard<'_, Shared<'p>> {
         for _ in 0..self.spins {
             match self.shared.try_lock() {
                 Ok(g) => return g,
@@ -748,7 +751,7 @@ impl<P> Engine<'_, P> {
     }
 }
 
-impl<P: FnMut(&Ledger)> Engine<'_, P> {
+impl Engine<'_, '_> {
     /// The first cell the ledger needs that no lane runs and no other orbit is certain or
     /// likely to label, marked running. `dry_since` holds [`Claims::stopped`] as of the last
     /// fruitless search: a fruitless search walks the whole rest of the grid, and idle lanes
@@ -987,13 +990,13 @@ const CELLS_AT_ONCE: usize = 8;
 
 /// The embedded engine's feed when one thread both steps and locates: a free lane takes the
 /// next cell the ledger needs, and a finished orbit goes to the ledger at once.
-struct LedgerFeed<'a, P> {
-    engine: &'a Engine<'a, P>,
+struct LedgerFeed<'a, 'p> {
+    engine: &'a Engine<'a, 'p>,
     book: CrossingBook,
     dry_since: Option<u64>,
 }
 
-impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
+impl BatchFeed<2> for LedgerFeed<'_, '_> {
     fn next(&mut self, all_idle: bool) -> Feed<2> {
         let needed = self.engine.take_needed(&mut self.dry_since);
         self.engine.feed(needed, all_idle)
@@ -1040,6 +1043,57 @@ impl<P: FnMut(&Ledger)> BatchFeed<2> for LedgerFeed<'_, P> {
     }
 }
 
+/// Every feed of the executor as one type, so that each driver (a batched stepper per lane
+/// count, instruction set and scheme shape, an adaptive driver per method) is compiled once
+/// rather than once per feed: a match per call costs nothing beside a step, and three copies
+/// of every driver would triple the build of this crate.
+enum GridFeed<'a, 'p> {
+    Cells(CellsFeed<'a>),
+    Stream(StreamFeed<'a>),
+    Ledger(LedgerFeed<'a, 'p>),
+}
+
+/// `$body` with `$f` bound to whichever feed `$feed` holds.
+macro_rules! each_feed {
+    ($feed:expr, $f:ident => $body:expr) => {
+        match $feed {
+            GridFeed::Cells($f) => $body,
+            GridFeed::Stream($f) => $body,
+            GridFeed::Ledger($f) => $body,
+        }
+    };
+}
+
+impl BatchFeed<2> for GridFeed<'_, '_> {
+    fn next(&mut self, all_idle: bool) -> Feed<2> {
+        each_feed!(self, f => f.next(all_idle))
+    }
+    fn finished(&mut self, id: usize, result: OrbitResult<2>) {
+        each_feed!(self, f => f.finished(id, result))
+    }
+    fn on_crossing(&mut self, id: usize, crossing: &Crossing<2>) {
+        each_feed!(self, f => f.on_crossing(id, crossing))
+    }
+    fn on_crossings(&mut self, ids: &[usize], crossings: &[Crossing<2>]) {
+        each_feed!(self, f => f.on_crossings(ids, crossings))
+    }
+    fn keeps_crossings(&self) -> bool {
+        each_feed!(self, f => f.keeps_crossings())
+    }
+    fn books_by_region(&self) -> bool {
+        each_feed!(self, f => f.books_by_region())
+    }
+    fn same_region(&self, crossing: &Crossing<2>, radius: f64) -> bool {
+        each_feed!(self, f => f.same_region(crossing, radius))
+    }
+    fn cancelled(&mut self, id: usize) -> bool {
+        each_feed!(self, f => f.cancelled(id))
+    }
+    fn abandoned(&mut self, id: usize, steps: u64) {
+        each_feed!(self, f => f.abandoned(id, steps))
+    }
+}
+
 /// Runs a whole grid in this process on the current rayon pool and returns the finished
 /// ledger. Fast PSS streams: batched steppers (tangent-map methods; adaptive ones run one
 /// scalar orbit per thread through the same feed) whose free lanes take the next cell the
@@ -1075,6 +1129,19 @@ pub fn run_embedded_forecast(
     forecast: Option<&Forecast>,
     mut progress: impl FnMut(&Ledger) + Send,
 ) -> Ledger {
+    run_embedded_with(grid, cell_run, mode, window, forecast, &mut progress)
+}
+
+/// [`run_embedded_forecast`] for any progress callback: the engines are compiled once, here,
+/// rather than once per caller's closure in every crate that runs a grid.
+fn run_embedded_with(
+    grid: &Grid,
+    cell_run: &CellRun,
+    mode: Mode,
+    window: usize,
+    forecast: Option<&Forecast>,
+    progress: &mut (dyn FnMut(&Ledger) + Send),
+) -> Ledger {
     let streaming = mode == Mode::FastPss && cell_run.checkpoints_per_decade == 0;
     if !streaming {
         let mut ledger = Ledger::new(grid, mode);
@@ -1107,11 +1174,11 @@ pub fn run_embedded_forecast(
     let Method::TangentMap(scheme) = &cell_run.run.method else {
         rayon::broadcast(|_| {
             let _guard = FailOnPanic(&engine.failed);
-            let mut feed = LedgerFeed {
+            let mut feed = GridFeed::Ledger(LedgerFeed {
                 engine: &engine,
                 book: CrossingBook::default(),
                 dry_since: None,
-            };
+            });
             drive_adaptive(
                 grid,
                 cell_run,
@@ -1126,18 +1193,18 @@ pub fn run_embedded_forecast(
     let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
     rayon::broadcast(|_| {
         let _guard = FailOnPanic(&engine.failed);
-        let mut feed = LedgerFeed {
+        let mut feed = GridFeed::Ledger(LedgerFeed {
             engine: &engine,
             book: CrossingBook::default(),
             dry_since: None,
-        };
+        });
         drive(&map, &cell_run.config, &requests, mode, &mut feed);
     });
     finish(shared, &claims)
 }
 
 /// The ledger of a finished streaming run, with the abandoned orbits counted.
-fn finish<P>(shared: Mutex<Shared<P>>, claims: &Claims) -> Ledger {
+fn finish(shared: Mutex<Shared<'_>>, claims: &Claims) -> Ledger {
     let Shared { mut ledger, .. } = shared.into_inner().expect("ledger lock");
     let (n, steps) = claims.abandoned();
     ledger.record_abandoned(n, steps);
@@ -1167,7 +1234,7 @@ fn drive_adaptive(
     cell_run: &CellRun,
     requests: &Requests,
     guided: bool,
-    feed: &mut impl BatchFeed<2>,
+    feed: &mut GridFeed<'_, '_>,
 ) {
     integrate_feed_adaptive::<_, 2, 2>(
         &HenonHeiles,

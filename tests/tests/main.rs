@@ -1,0 +1,17 @@
+//! End-to-end tests of the `salient` binary and numerical hard cases, one module per subject,
+//! built as one test binary (each binary would link the whole gRPC and SQLite stack anew).
+
+#[path = "../../crates/core/tests/common/mod.rs"]
+mod common;
+mod distributed_cli;
+mod docs_check;
+mod docs_examples;
+mod hard_cases_cli;
+mod hard_cases_numerics;
+mod hardening_cli;
+mod orbit_cli;
+mod plain_c_cli;
+mod precision_cli;
+mod readme_cli;
+mod run_cli;
+mod soak_cli;
