@@ -65,13 +65,16 @@ pub fn sh_lines(text: &str) -> Vec<String> {
     fenced_blocks(text)
         .into_iter()
         .filter(|(info, _)| info == "sh")
-        .flat_map(|(_, body)| {
-            body.lines()
-                .map(|line| line.split(" #").next().unwrap_or("").trim())
-                .filter(|c| !c.is_empty() && !c.starts_with('#'))
-                .map(|c| c.trim_end_matches('&').trim().to_string())
-                .collect::<Vec<_>>()
-        })
+        .flat_map(|(_, body)| command_lines(&body))
+        .collect()
+}
+
+/// The commands of one `sh` block's body, as [`sh_lines`] reads them.
+pub fn command_lines(body: &str) -> Vec<String> {
+    body.lines()
+        .map(|line| line.split(" #").next().unwrap_or("").trim())
+        .filter(|c| !c.is_empty() && !c.starts_with('#'))
+        .map(|c| c.trim_end_matches('&').trim().to_string())
         .collect()
 }
 

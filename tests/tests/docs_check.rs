@@ -4,15 +4,8 @@
 //! docs/performance.md. The phrases are spelt in pieces here, so that this file, and checks
 //! like it that read the whole tree, do not find them in it.
 
+use salient_tests::docs::root;
 use std::path::{Path, PathBuf};
-
-/// The repository root (this crate lives in `tests/`).
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("the repository root")
-        .to_path_buf()
-}
 
 /// Tracked `*.md` and `*.rs` files: git's list where git and the repository are there, else
 /// every such file outside build output and hidden folders.

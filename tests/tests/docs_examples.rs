@@ -9,7 +9,9 @@
 use salient_tests::cluster::{
     assert_same_outputs, client, coordinator_with, output_within, spawn, TOKEN,
 };
-use salient_tests::docs::{fenced_blocks, inline_code, read, root, sh_lines, user_docs};
+use salient_tests::docs::{
+    command_lines, fenced_blocks, inline_code, read, root, sh_lines, user_docs,
+};
 use salient_tests::{run_embedded, salient, salient_path};
 use std::collections::{BTreeSet, HashMap};
 use std::path::Path;
@@ -295,7 +297,7 @@ fn the_distributed_walkthrough_runs_as_shown() {
     let mut url = String::new();
     let mut procs = Vec::new();
     let mut ran = Vec::new();
-    for line in sh_lines(&format!("```sh\n{block}```\n")) {
+    for line in command_lines(&block) {
         let mut args: Vec<String> = line.split_whitespace().skip(1).map(String::from).collect();
         for k in 1..args.len() {
             if ["--db", "--out"].contains(&args[k - 1].as_str()) {
