@@ -264,8 +264,8 @@ fn the_checks_find_what_is_wrong() {
         let words: Vec<&str> = line.split_whitespace().collect();
         cargo_problem(&words, help)
     };
-    assert!(cargo("cargo bench -p salient-core --bench stepper", &mut help).is_none());
-    assert!(cargo("cargo bench -p salient-core --bench steppers", &mut help).is_some());
+    assert!(cargo("cargo bench -p salient-bench --bench stepper", &mut help).is_none());
+    assert!(cargo("cargo bench -p salient-bench --bench steppers", &mut help).is_some());
     assert!(cargo("cargo run -p salient-core --example nothing", &mut help).is_some());
     assert!(cargo(
         "cargo test -p salient-tests --test integration nothing_",

@@ -20,7 +20,7 @@ use crate::common::{c1, ic, r1, ENERGY};
 use salient_core::adaptive::Protocol;
 use salient_core::method::Method;
 use salient_core::orbit::{Class, OrbitConfig, OrbitResult, Requests, Status};
-use salient_core::run::{run_orbit, MethodRun};
+use salient_core::run::{run_henon_heiles, MethodRun, Vectors};
 use salient_core::section::{on_section, p1_squared, SectionError};
 use salient_core::{Hamiltonian, HenonHeiles};
 use std::time::Instant;
@@ -47,7 +47,7 @@ fn run(
         protocol,
     };
     let start = Instant::now();
-    let res = run_orbit::<_, 2, 2>(&HenonHeiles, &run, ENERGY, x.0, x.1, cfg, req);
+    let res = run_henon_heiles(&run, ENERGY, x, cfg, req, Vectors::Two);
     let wall = start.elapsed().as_secs_f64();
     println!(
         "{method:>9} δ={:<7} {:<7} τ={:<6} t_final={:.0e}: {:<18} t={:<12} steps={:<10} \
@@ -449,18 +449,17 @@ fn section_boundary_initial_conditions_integrate_and_cross_cleanly() {
             );
             for (method, delta, protocol, energy_tol) in methods {
                 let cfg = OrbitConfig::new(0.05, 1000.0);
-                let res = run_orbit::<_, 2, 2>(
-                    &HenonHeiles,
+                let res = run_henon_heiles(
                     &MethodRun {
                         method: Method::parse(method).unwrap(),
                         delta,
                         protocol,
                     },
                     ENERGY,
-                    x.0,
-                    x.1,
+                    x,
                     &cfg,
                     &req,
+                    Vectors::Two,
                 );
                 runs += 1;
                 let what = format!("{method} {protocol:?} ε = {eps:e} ({q2}, {p2})");
@@ -543,18 +542,17 @@ fn section_boundary_crossings_are_located_consistently_across_methods() {
         for (q2, p2) in near_boundary(eps) {
             let x = on_section(&HenonHeiles, ENERGY, &[q2], &[p2]).unwrap();
             let go = |method: &str, delta: Option<f64>| {
-                run_orbit::<_, 2, 2>(
-                    &HenonHeiles,
+                run_henon_heiles(
                     &MethodRun {
                         method: Method::parse(method).unwrap(),
                         delta,
                         protocol: Protocol::Free,
                     },
                     ENERGY,
-                    x.0,
-                    x.1,
+                    x,
                     &cfg,
                     &req,
+                    Vectors::Two,
                 )
             };
             let d = go("dop853", Some(1e-13));

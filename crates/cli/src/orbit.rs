@@ -6,7 +6,7 @@ use crate::usage::{finite, positive, runtime, CliError, CliResult};
 use clap::{Args, ValueEnum};
 use salient_core::adaptive::Protocol as AdaptiveProtocol;
 use salient_core::orbit::{OrbitConfig, OrbitResult, Requests, Thresholds};
-use salient_core::run::{run_orbit, MethodRun};
+use salient_core::run::{run_henon_heiles, MethodRun, Vectors};
 use salient_core::section::on_section;
 use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method};
 use salient_report::{render_loglog_png, HLine, Line, LogLogPlot, ReportError};
@@ -232,11 +232,24 @@ pub fn run(args: OrbitArgs) -> CliResult<()> {
         .map(|dir| Staged::begin(dir, "--out"))
         .transpose()?;
     let start = Instant::now();
-    let result: OrbitResult<2> = if job.gali_all {
-        integrate_job::<4>(&job)
-    } else {
-        integrate_job::<2>(&job)
+    let run = MethodRun {
+        method: job.method.clone(),
+        delta: job.delta,
+        protocol: job.protocol,
     };
+    let vectors = if job.gali_all {
+        Vectors::Four
+    } else {
+        Vectors::Two
+    };
+    let result = run_henon_heiles(
+        &run,
+        job.energy,
+        (job.q, job.p),
+        &job.config,
+        &job.requests,
+        vectors,
+    );
     let wall = start.elapsed().as_secs_f64();
     let mut summary = summary_json(&job, &result, wall);
     if let (Some(staged), Some(dir)) = (staged, &args.out) {
@@ -261,24 +274,6 @@ pub fn run(args: OrbitArgs) -> CliResult<()> {
         print!("{}", summary_text(&summary));
     }
     Ok(())
-}
-
-/// Runs the job's method with `K` deviation vectors.
-fn integrate_job<const K: usize>(job: &OrbitJob) -> OrbitResult<2> {
-    let run = MethodRun {
-        method: job.method.clone(),
-        delta: job.delta,
-        protocol: job.protocol,
-    };
-    run_orbit::<_, 2, K>(
-        &HenonHeiles,
-        &run,
-        job.energy,
-        job.q,
-        job.p,
-        &job.config,
-        &job.requests,
-    )
 }
 
 fn summary_json(job: &OrbitJob, r: &OrbitResult<2>, wall: f64) -> Value {

@@ -118,16 +118,15 @@ pub fn run(args: PrecisionArgs) -> CliResult<()> {
         "salient precision: orbit {name}, t = {}, reference taylor-dd δ = {REFERENCE_DELTA:e}",
         args.t_final
     );
-    let reference = reference(&HenonHeiles, energy, q, p, args.t_final);
+    let reference = reference(energy, q, p, args.t_final);
     let rows = run_ladder(
-        &HenonHeiles,
         energy,
         q,
         p,
         args.t_final,
         &ladder,
         &reference,
-        |i, r| {
+        &mut |i, r| {
             let run = &r.setting.run;
             eprintln!(
                 "[{:>2}/{n}] {:<12} {:<12} {:<7} {:>9.3} s  error {}",

@@ -1,13 +1,12 @@
 //! Speed against error: every method over a ladder of settings on one orbit, each run compared
 //! with a double-double Taylor reference from the same initial condition (the seed paper's
-//! Table 1 and Fig. 6, as data).
+//! Table 1 and Fig. 6, as data), on Hénon–Heiles.
 
 use crate::adaptive::Protocol;
 use crate::method::Method;
 use crate::orbit::{Class, OrbitConfig, OrbitResult, Requests, Status};
-use crate::run::{run_orbit, MethodRun};
+use crate::run::{run_henon_heiles, MethodRun, Vectors};
 use crate::scheme::Scheme;
-use crate::taylor::TaylorSeries;
 use std::time::Instant;
 
 /// The renormalisation interval of the adaptive methods' runs (the paper's τ).
@@ -84,41 +83,32 @@ fn config(tau: f64, t_final: f64) -> OrbitConfig {
 }
 
 /// The reference run: taylor-dd at δ = 1e-28, free protocol.
-pub fn reference<H: TaylorSeries<2>>(
-    ham: &H,
-    energy: f64,
-    q: [f64; 2],
-    p: [f64; 2],
-    t_final: f64,
-) -> OrbitResult<2> {
+pub fn reference(energy: f64, q: [f64; 2], p: [f64; 2], t_final: f64) -> OrbitResult<2> {
     let run = MethodRun {
         method: Method::TaylorDd,
         delta: Some(REFERENCE_DELTA),
         protocol: Protocol::Free,
     };
-    run_orbit::<H, 2, 2>(
-        ham,
+    run_henon_heiles(
         &run,
         energy,
-        q,
-        p,
+        (q, p),
         &config(ADAPTIVE_TAU, t_final),
         &Requests::default(),
+        Vectors::Two,
     )
 }
 
 /// Runs every setting and measures it against `reference`; `progress` sees each row as it
 /// is done.
-#[allow(clippy::too_many_arguments)]
-pub fn run_ladder<H: TaylorSeries<2>>(
-    ham: &H,
+pub fn run_ladder(
     energy: f64,
     q: [f64; 2],
     p: [f64; 2],
     t_final: f64,
     ladder: &[Setting],
     reference: &OrbitResult<2>,
-    mut progress: impl FnMut(usize, &Row),
+    progress: &mut dyn FnMut(usize, &Row),
 ) -> Vec<Row> {
     let requests = Requests {
         energy: true,
@@ -127,14 +117,13 @@ pub fn run_ladder<H: TaylorSeries<2>>(
     let mut rows = Vec::with_capacity(ladder.len());
     for (i, s) in ladder.iter().enumerate() {
         let start = Instant::now();
-        let r = run_orbit::<H, 2, 2>(
-            ham,
+        let r = run_henon_heiles(
             &s.run,
             energy,
-            q,
-            p,
+            (q, p),
             &config(s.tau, t_final),
             &requests,
+            Vectors::Two,
         );
         let wall_s = start.elapsed().as_secs_f64();
         let state_error = (0..2)

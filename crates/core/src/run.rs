@@ -61,6 +61,33 @@ pub fn run_orbit<H: TaylorSeries<N>, const N: usize, const K: usize>(
         .expect("an unwatched orbit is never abandoned")
 }
 
+/// The deviation vectors a single orbit carries.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Vectors {
+    /// Two: SALI and GALI_2.
+    Two,
+    /// Four: GALI_3 and GALI_4 as well.
+    Four,
+}
+
+/// [`run_orbit`] on Hénon–Heiles. The single-orbit commands (`salient orbit`, `salient
+/// precision`) call this rather than instantiating the integrators themselves: compiled here,
+/// their loops build in parallel with salient-grid's instead of after it.
+pub fn run_henon_heiles(
+    run: &MethodRun,
+    energy: f64,
+    (q, p): ([f64; 2], [f64; 2]),
+    config: &OrbitConfig,
+    requests: &Requests,
+    vectors: Vectors,
+) -> OrbitResult<2> {
+    let ham = &crate::HenonHeiles;
+    match vectors {
+        Vectors::Two => run_orbit::<_, 2, 2>(ham, run, energy, q, p, config, requests),
+        Vectors::Four => run_orbit::<_, 2, 4>(ham, run, energy, q, p, config, requests),
+    }
+}
+
 /// [`run_orbit`] for the adaptive methods, under a [`Watch`] that sees the crossings as they
 /// are found and may abandon the orbit. Tangent-map orbits go through
 /// [`integrate`](crate::orbit::integrate) or the batched driver instead.
@@ -180,7 +207,17 @@ pub fn integrate_feed_adaptive<H: TaylorSeries<N>, const N: usize, const K: usiz
         requests,
     };
     match feed_orbits_per_thread(&run.method, config.tau, config.t_final, guided) {
-        GUIDED_DOP853_LANES => in_lanes::<H, N, K, GUIDED_DOP853_LANES>(&setup, run, energy, feed),
+        // Only DOP853 takes this width: the Taylor methods are not compiled for it.
+        GUIDED_DOP853_LANES => {
+            let (dq, dp) = initial_vectors::<N, K>(config.deviation);
+            let start = |q, p| Phase { q, p, dq, dp };
+            integrate_feed_dop853_on::<H, N, K, GUIDED_DOP853_LANES>(
+                Isa::detect(),
+                &setup,
+                start,
+                feed,
+            )
+        }
         LANES => in_lanes::<H, N, K, LANES>(&setup, run, energy, feed),
         LONG_RUN_LANES => in_lanes::<H, N, K, LONG_RUN_LANES>(&setup, run, energy, feed),
         // One orbit at a time: at large τ a step is cheap enough beside the work of a crossing

@@ -1,14 +1,13 @@
 //! The in-memory RGB canvas every plot is drawn on, the embedded font, and PNG output.
 //!
 //! Plots are first painted into a plain `Vec<u8>` (RGB, row-major, 3 bytes a pixel) through
-//! `BitMapBackend::with_buffer`; only then is the finished buffer copied into a file-backed
-//! backend and encoded as PNG. The split lets the unit tests inspect the pixels without an image
-//! decoder.
+//! `BitMapBackend::with_buffer`; only then is the finished buffer encoded as PNG (the `png`
+//! crate, without plotters' image-codec stack). The split lets the unit tests inspect the pixels
+//! without an image decoder.
 
 use std::path::Path;
 use std::sync::OnceLock;
 
-use plotters::backend::{BitMapBackend, DrawingBackend};
 use plotters::style::{register_font, FontStyle};
 
 use crate::error::{plot_err, ReportError};
@@ -116,12 +115,15 @@ impl Canvas {
         }
         // Create the file ourselves first so that a missing directory or a permission problem
         // surfaces as a proper `ReportError::Io` (the encoder would wrap it opaquely).
-        std::fs::File::create(path)?;
-        let mut backend = BitMapBackend::new(path, (self.width, self.height));
-        backend
-            .blit_bitmap((0, 0), (self.width, self.height), &self.rgb)
-            .map_err(plot_err)?;
-        backend.present().map_err(plot_err)?;
+        let file = std::io::BufWriter::new(std::fs::File::create(path)?);
+        let mut encoder = png::Encoder::new(file, self.width, self.height);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        // Per-row filter choice: plots of flat colour areas compress to about a third.
+        encoder.set_adaptive_filter(png::AdaptiveFilterType::Adaptive);
+        let mut writer = encoder.write_header().map_err(plot_err)?;
+        writer.write_image_data(&self.rgb).map_err(plot_err)?;
+        writer.finish().map_err(plot_err)?;
         Ok(())
     }
 }

@@ -1,8 +1,11 @@
-//! A small timing harness for the benchmarks (`harness = false` targets): each case runs in
+//! The numerical core's benchmarks (`benches/`) and their timing harness. Each case runs in
 //! samples of a calibrated number of calls, and the median time per element (step, orbit-step
-//! or evaluation) is printed with the range of the samples. `cargo bench -p salient-core
+//! or evaluation) is printed with the range of the samples. `cargo bench -p salient-bench
 //! --bench NAME [FILTER]` measures the cases whose name contains FILTER; run without
 //! `--bench` (as `cargo test --benches` does) every case runs once, as a smoke test.
+//!
+//! A package of their own so that they compile as the product's loops do (one codegen unit,
+//! Cargo.toml) while salient-core's tests, in the same profile, take sixteen.
 
 use std::time::{Duration, Instant};
 

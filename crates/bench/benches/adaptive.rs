@@ -1,9 +1,7 @@
 //! ns per step of the adaptive integrators on R1 with 2 deviation vectors (12 ODEs), natural
 //! steps, and ns per right-hand-side evaluation (DOP853 makes 12 per accepted step).
 
-mod harness;
-
-use harness::Harness;
+use salient_bench::Harness;
 use salient_core::dd::DoubleDouble;
 use salient_core::dop853::{rhs, Dop853, Dop853Config};
 use salient_core::orbit::initial_vectors;

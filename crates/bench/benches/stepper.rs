@@ -2,9 +2,7 @@
 //! SIMD lanes (throughput-bound), on the pinned target level and, where the host has it,
 //! AVX-512. Throughput is reported per orbit-step.
 
-mod harness;
-
-use harness::Harness;
+use salient_bench::Harness;
 use salient_core::batch::{integrate_batch_on, Isa};
 use salient_core::orbit::{integrate, OrbitConfig, Requests};
 use salient_core::section::on_section;
