@@ -681,6 +681,17 @@ pub trait Watch<const N: usize> {
     }
 }
 
+/// A watch borrowed mutably is a watch, so that a `&mut dyn Watch` can drive the copies of the
+/// drivers compiled once in this crate ([`crate::run::run_adaptive_henon_heiles`]).
+impl<const N: usize, W: Watch<N> + ?Sized> Watch<N> for &mut W {
+    fn crossing(&mut self, crossing: &Crossing<N>) {
+        (**self).crossing(crossing)
+    }
+    fn cancelled(&mut self) -> bool {
+        (**self).cancelled()
+    }
+}
+
 /// Steps between polls of [`Watch::cancelled`]: the tangent-map driver's
 /// [`poll_interval`](crate::batch::poll_interval), 64 steps or a time of 4 when that is more.
 /// A poll wakes the orbit's driver in lanes and reads shared claims, so polling every few

@@ -20,7 +20,9 @@ use crate::orbit::{
     Tracker, ENERGY_CHECK_EVERY,
 };
 use crate::real::{dot, lane_bits, Lanes, Real};
-use crate::section::{locate_upward_lanes, locate_upward_lanes_settling, Crossing, CrossingStep};
+use crate::section::{
+    locate_upward_lanes, locate_upward_lanes_settling, CellLattice, Crossing, CrossingStep,
+};
 use crate::tangent::{AnyShape, CorrectedDkd, EdgeIncrement, Phase, StepShape, TangentMap};
 
 // `LaneState::energy_phase` has a bit per phase of the energy checks.
@@ -155,20 +157,15 @@ pub trait BatchFeed<const N: usize> {
     fn keeps_crossings(&self) -> bool {
         true
     }
-    /// Whether the feed uses crossings only through the region of the section each falls in
-    /// (a grid's cell), as [`BatchFeed::same_region`] tells them apart. Then the driver ends a
-    /// crossing's search as soon as its region is certain
-    /// ([`locate_upward_lanes_settling`]), and the crossings handed to
-    /// [`BatchFeed::on_crossing`] and kept in results are points of the orbit within a
-    /// radius `same_region` accepted of the crossing: at τ = 0.5 one partial step and the
-    /// rest of it instead of three or four, most of the search's cost.
-    fn books_by_region(&self) -> bool {
-        false
-    }
-    /// Whether every point within `radius` of `crossing`, in each of the section's coordinates
-    /// (q_i and p_i for i ≥ 2), falls in the region `crossing` falls in.
-    fn same_region(&self, _crossing: &Crossing<N>, _radius: f64) -> bool {
-        false
+    /// The lattice whose cell is all the feed uses of a crossing (a grid's cells on the (q_2,
+    /// p_2) plane), if it uses no more. Then the driver ends a crossing's search as soon as its
+    /// cell is certain ([`locate_upward_lanes_settling`]), and the crossings handed to
+    /// [`BatchFeed::on_crossing`] and kept in results are points of the orbit within a radius
+    /// of the crossing that keeps them in its cell: at τ = 0.5 one partial step and the rest
+    /// of it instead of three or four, most of the search's cost. The lattice is a value
+    /// rather than a callback so that the test inlines into the search.
+    fn books_by_cell(&self) -> Option<CellLattice> {
+        None
     }
     /// Polled every [`poll_interval`] steps: true abandons orbit `id` (no result is reported).
     fn cancelled(&mut self, _id: usize) -> bool {
@@ -176,6 +173,35 @@ pub trait BatchFeed<const N: usize> {
     }
     /// Orbit `id` was abandoned after `steps` steps.
     fn abandoned(&mut self, _id: usize, _steps: u64) {}
+}
+
+/// A feed borrowed mutably is a feed, so that a `&mut dyn BatchFeed` can drive the copies of
+/// the drivers compiled once in this crate ([`crate::run::integrate_feed_henon_heiles`]).
+impl<const N: usize, F: BatchFeed<N> + ?Sized> BatchFeed<N> for &mut F {
+    fn next(&mut self, all_idle: bool) -> Feed<N> {
+        (**self).next(all_idle)
+    }
+    fn finished(&mut self, id: usize, result: OrbitResult<N>) {
+        (**self).finished(id, result)
+    }
+    fn on_crossing(&mut self, id: usize, crossing: &Crossing<N>) {
+        (**self).on_crossing(id, crossing)
+    }
+    fn on_crossings(&mut self, ids: &[usize], crossings: &[Crossing<N>]) {
+        (**self).on_crossings(ids, crossings)
+    }
+    fn keeps_crossings(&self) -> bool {
+        (**self).keeps_crossings()
+    }
+    fn books_by_cell(&self) -> Option<CellLattice> {
+        (**self).books_by_cell()
+    }
+    fn cancelled(&mut self, id: usize) -> bool {
+        (**self).cancelled(id)
+    }
+    fn abandoned(&mut self, id: usize, steps: u64) {
+        (**self).abandoned(id, steps)
+    }
 }
 
 /// Steps between polls of [`BatchFeed::cancelled`] (and between requests for work of idle
@@ -219,27 +245,36 @@ pub fn integrate_batch_on<H: Hamiltonian<N>, const N: usize, const K: usize, con
     requests: &Requests,
     sink: impl FnMut(usize, OrbitResult<N>),
 ) {
-    struct Slice<'a, const N: usize, S> {
-        ics: &'a [([f64; N], [f64; N])],
-        next: usize,
-        sink: S,
-    }
-    impl<const N: usize, S: FnMut(usize, OrbitResult<N>)> BatchFeed<N> for Slice<'_, N, S> {
-        fn next(&mut self, _all_idle: bool) -> Feed<N> {
-            match self.ics.get(self.next) {
-                Some(&(q, p)) => {
-                    self.next += 1;
-                    Feed::Orbit(self.next - 1, q, p)
-                }
-                None => Feed::Done,
-            }
-        }
-        fn finished(&mut self, id: usize, result: OrbitResult<N>) {
-            (self.sink)(id, result)
-        }
-    }
-    let mut feed = Slice { ics, next: 0, sink };
+    let mut feed = IcsFeed::new(ics, sink);
     integrate_feed_on::<H, N, K, L>(isa, map, config, requests, &mut feed)
+}
+
+/// The orbits from a list of initial conditions, each result handed to `sink`.
+pub(crate) struct IcsFeed<'a, const N: usize, S> {
+    ics: &'a [([f64; N], [f64; N])],
+    next: usize,
+    sink: S,
+}
+
+impl<'a, const N: usize, S> IcsFeed<'a, N, S> {
+    pub(crate) fn new(ics: &'a [([f64; N], [f64; N])], sink: S) -> Self {
+        IcsFeed { ics, next: 0, sink }
+    }
+}
+
+impl<const N: usize, S: FnMut(usize, OrbitResult<N>)> BatchFeed<N> for IcsFeed<'_, N, S> {
+    fn next(&mut self, _all_idle: bool) -> Feed<N> {
+        match self.ics.get(self.next) {
+            Some(&(q, p)) => {
+                self.next += 1;
+                Feed::Orbit(self.next - 1, q, p)
+            }
+            None => Feed::Done,
+        }
+    }
+    fn finished(&mut self, id: usize, result: OrbitResult<N>) {
+        (self.sink)(id, result)
+    }
 }
 
 /// What every lane's orbit is integrated with.
@@ -1103,9 +1138,9 @@ impl<const N: usize> CrossingQueue<N> {
             return;
         }
         let steps = &self.steps[..self.len];
-        let found = if feed.books_by_region() {
+        let found = if let Some(cells) = feed.books_by_cell() {
             locate_upward_lanes_settling::<H, N, LOCATE_LANES>(map, steps, &|c, r| {
-                feed.same_region(c, r)
+                cells.same_cell_within(c.q[1], c.p[1], r)
             })
         } else {
             locate_upward_lanes::<H, N, LOCATE_LANES>(map, steps)

@@ -4,8 +4,7 @@
 use crate::adaptive::{
     integrate_adaptive_watched, Abandoned, Dop853Orbit, Protocol, TaylorOrbit, Unwatched, Watch,
 };
-use crate::batch::BatchFeed;
-use crate::batch::Isa;
+use crate::batch::{integrate_feed_on, BatchFeed, IcsFeed, Isa};
 use crate::dd::DoubleDouble;
 use crate::dop853::{Dop853, Dop853Config};
 use crate::lanes::{
@@ -16,6 +15,7 @@ use crate::method::Method;
 use crate::orbit::{initial_vectors, integrate, OrbitConfig, OrbitResult, Requests};
 use crate::tangent::{Phase, TangentMap};
 use crate::taylor::{Taylor, TaylorSeries};
+use crate::HenonHeiles;
 
 /// A method with its settings.
 #[derive(Clone, Debug, PartialEq)]
@@ -57,7 +57,9 @@ pub fn run_orbit<H: TaylorSeries<N>, const N: usize, const K: usize>(
         let map = TangentMap::new(ham, scheme, config.tau);
         return integrate::<H, N, K>(&map, q, p, config, requests);
     }
-    run_adaptive::<H, N, K>(ham, run, energy, q, p, config, requests, &mut Unwatched)
+    // Through a `dyn Watch`: the watched orbits of the grid's feeds share this copy.
+    let mut unwatched: &mut dyn Watch<N> = &mut Unwatched;
+    run_adaptive::<H, N, K>(ham, run, energy, q, p, config, requests, &mut unwatched)
         .expect("an unwatched orbit is never abandoned")
 }
 
@@ -81,11 +83,86 @@ pub fn run_henon_heiles(
     requests: &Requests,
     vectors: Vectors,
 ) -> OrbitResult<2> {
-    let ham = &crate::HenonHeiles;
+    let ham = &HenonHeiles;
     match vectors {
         Vectors::Two => run_orbit::<_, 2, 2>(ham, run, energy, q, p, config, requests),
         Vectors::Four => run_orbit::<_, 2, 4>(ham, run, energy, q, p, config, requests),
     }
+}
+
+/// [`run_adaptive`] on Hénon–Heiles, compiled here once (see [`run_henon_heiles`]).
+#[allow(clippy::too_many_arguments)]
+pub fn run_adaptive_henon_heiles(
+    run: &MethodRun,
+    energy: f64,
+    (q, p): ([f64; 2], [f64; 2]),
+    config: &OrbitConfig,
+    requests: &Requests,
+    vectors: Vectors,
+    mut watch: &mut dyn Watch<2>,
+) -> Result<OrbitResult<2>, Abandoned> {
+    let ham = &HenonHeiles;
+    let watch = &mut watch;
+    match vectors {
+        Vectors::Two => run_adaptive::<_, 2, 2>(ham, run, energy, q, p, config, requests, watch),
+        Vectors::Four => run_adaptive::<_, 2, 4>(ham, run, energy, q, p, config, requests, watch),
+    }
+}
+
+/// The batched tangent-map driver ([`integrate_feed_on`]) on Hénon–Heiles in `lanes` (4 or 8)
+/// SIMD lanes on `isa`, with two deviation vectors. The grid's executor and the tests call
+/// this copy, compiled here once, rather than instantiating the driver themselves: each copy
+/// of the driver is a large share of a crate's build.
+pub fn integrate_feed_henon_heiles(
+    isa: Isa,
+    lanes: usize,
+    map: &TangentMap<'_, HenonHeiles>,
+    config: &OrbitConfig,
+    requests: &Requests,
+    mut feed: &mut dyn BatchFeed<2>,
+) {
+    match lanes {
+        4 => integrate_feed_on::<_, 2, 2, 4>(isa, map, config, requests, &mut feed),
+        8 => integrate_feed_on::<_, 2, 2, 8>(isa, map, config, requests, &mut feed),
+        _ => panic!("the batched driver runs 4 or 8 lanes, not {lanes}"),
+    }
+}
+
+/// [`integrate_feed_henon_heiles`] on the orbits from `ics`, each result handed to `sink` with
+/// its index in `ics`.
+#[allow(clippy::too_many_arguments)]
+pub fn integrate_batch_henon_heiles(
+    isa: Isa,
+    lanes: usize,
+    map: &TangentMap<'_, HenonHeiles>,
+    ics: &[([f64; 2], [f64; 2])],
+    config: &OrbitConfig,
+    requests: &Requests,
+    sink: &mut dyn FnMut(usize, OrbitResult<2>),
+) {
+    let mut feed = IcsFeed::new(ics, sink);
+    integrate_feed_henon_heiles(isa, lanes, map, config, requests, &mut feed)
+}
+
+/// [`integrate_feed_adaptive`] on Hénon–Heiles with two deviation vectors, compiled here once
+/// (see [`integrate_feed_henon_heiles`]).
+pub fn integrate_feed_adaptive_henon_heiles(
+    run: &MethodRun,
+    energy: f64,
+    config: &OrbitConfig,
+    requests: &Requests,
+    guided: bool,
+    mut feed: &mut dyn BatchFeed<2>,
+) {
+    integrate_feed_adaptive::<_, 2, 2>(
+        &HenonHeiles,
+        run,
+        energy,
+        config,
+        requests,
+        guided,
+        &mut feed,
+    )
 }
 
 /// [`run_orbit`] for the adaptive methods, under a [`Watch`] that sees the crossings as they
@@ -222,8 +299,10 @@ pub fn integrate_feed_adaptive<H: TaylorSeries<N>, const N: usize, const K: usiz
         LONG_RUN_LANES => in_lanes::<H, N, K, LONG_RUN_LANES>(&setup, run, energy, feed),
         // One orbit at a time: at large τ a step is cheap enough beside the work of a crossing
         // that the orbits lanes put in flight cost more than the lanes save.
+        // The watch goes as a `dyn Watch`, so that this shares `run_orbit`'s copy.
         _ => integrate_feed_scalar(feed, |q, p, watch| {
-            run_adaptive::<H, N, K>(ham, run, energy, q, p, config, requests, watch)
+            let mut watch: &mut dyn Watch<N> = watch;
+            run_adaptive::<H, N, K>(ham, run, energy, q, p, config, requests, &mut watch)
         }),
     }
 }

@@ -68,6 +68,38 @@ pub fn on_section<H: Hamiltonian<N>, const N: usize>(
     Ok((q, p))
 }
 
+/// A lattice of rectangular cells on the (q_2, p_2) plane of a 2-dof section: cell (i, j)
+/// holds the points with ⌊(q_2 − q2_origin) / q2_width⌋ = i and ⌊(p_2 − p2_origin) /
+/// p2_width⌋ = j (a grid's cells, and the indices beyond it).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CellLattice {
+    pub q2_origin: f64,
+    pub p2_origin: f64,
+    pub q2_width: f64,
+    pub p2_width: f64,
+}
+
+impl CellLattice {
+    /// Whether every point within `r` of (q2, p2) in each coordinate falls in the cell of
+    /// (q2, p2). The index along each axis is a monotone function of the coordinate, rounding
+    /// included, so equal indices at both ends of the interval hold for everything between.
+    #[inline]
+    pub fn same_cell_within(&self, q2: f64, p2: f64, r: f64) -> bool {
+        // The floors at both corners over one array, so that the four divisions go as one
+        // vector instruction (the operations, and so the bits, are the same).
+        let x = [q2 - r, q2 + r, p2 - r, p2 + r];
+        let lo = [
+            self.q2_origin,
+            self.q2_origin,
+            self.p2_origin,
+            self.p2_origin,
+        ];
+        let w = [self.q2_width, self.q2_width, self.p2_width, self.p2_width];
+        let f: [f64; 4] = core::array::from_fn(|k| ((x[k] - lo[k]) / w[k]).floor());
+        f[0] == f[1] && f[2] == f[3]
+    }
+}
+
 /// A step of an orbit that crosses q1 = 0 upwards: it starts at (`q`, `p`) at time `t` with
 /// q1 < 0 and ends one step τ later with q1 = `q1_end` ≥ 0.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -2,10 +2,16 @@
 
 #![allow(clippy::needless_range_loop, clippy::excessive_precision)]
 
-use salient_core::batch::integrate_batch;
-use salient_core::orbit::{integrate, OrbitConfig, OrbitResult, Requests, Status};
+//!
+//! The drivers are called through the copies salient-core compiles for Hénon–Heiles (the
+//! `*_henon_heiles` entry points the grid runs): the tests check what ships, and this binary
+//! does not compile the drivers again.
+
+use salient_core::batch::Isa;
+use salient_core::orbit::{OrbitConfig, OrbitResult, Requests, Status};
+use salient_core::run::{integrate_batch_henon_heiles, run_henon_heiles, MethodRun, Vectors};
 use salient_core::section::on_section;
-use salient_core::{HenonHeiles, Scheme, TangentMap};
+use salient_core::{HenonHeiles, Method, Scheme, TangentMap};
 
 fn same_bits(a: &OrbitResult<2>, b: &OrbitResult<2>) -> bool {
     let f = |x: f64| x.to_bits();
@@ -87,24 +93,43 @@ fn check_on<const L: usize>(
     ics: &[([f64; 2], [f64; 2])],
 ) -> std::collections::HashSet<Status> {
     let ham = HenonHeiles;
-    let map = TangentMap::new(&ham, &Scheme::by_name(scheme).unwrap(), cfg.tau);
+    let scheme = Scheme::by_name(scheme).unwrap();
+    let map = TangentMap::new(&ham, &scheme, cfg.tau);
     let cfg = *cfg;
     let mut got: Vec<Option<OrbitResult<2>>> = vec![None; ics.len()];
-    integrate_batch::<_, 2, 2, L>(&map, ics, &cfg, &requests, |i, r| {
+    let isa = Isa::detect();
+    integrate_batch_henon_heiles(isa, L, &map, ics, &cfg, &requests, &mut |i, r| {
         assert!(got[i].is_none(), "orbit {i} reported twice");
         got[i] = Some(r);
     });
     let mut statuses = std::collections::HashSet::new();
-    for (i, (q, p)) in ics.iter().enumerate() {
-        let want = integrate::<_, 2, 2>(&map, *q, *p, &cfg, &requests);
+    for (i, &(q, p)) in ics.iter().enumerate() {
+        let want = scalar(&scheme, (q, p), &cfg, &requests);
         let have = got[i].as_ref().expect("every orbit reported");
         assert!(
             same_bits(have, &want),
-            "{scheme} L={L} orbit {i}:\n batch  {have:?}\n scalar {want:?}"
+            "{} L={L} orbit {i}:\n batch  {have:?}\n scalar {want:?}",
+            scheme.name
         );
         statuses.insert(want.status);
     }
     statuses
+}
+
+/// The one-orbit tangent-map driver's result.
+fn scalar(
+    scheme: &Scheme,
+    start: ([f64; 2], [f64; 2]),
+    cfg: &OrbitConfig,
+    requests: &Requests,
+) -> OrbitResult<2> {
+    let run = MethodRun {
+        method: Method::TangentMap(scheme.clone()),
+        delta: None,
+        protocol: Default::default(),
+    };
+    // The energy only matters to taylor-dd.
+    run_henon_heiles(&run, f64::NAN, start, cfg, requests, Vectors::Two)
 }
 
 /// [`check`], asserting that the sample covers the interesting paths: full runs, early stops
@@ -180,7 +205,6 @@ fn quiet_windows_keep_the_scalar_bits() {
 /// have AVX-512; elsewhere there is nothing to compare and the test says so).
 #[test]
 fn the_avx512_driver_equals_the_pinned_one_bit_for_bit() {
-    use salient_core::batch::{integrate_batch_on, Isa};
     if !Isa::Avx512.available() {
         // Straight to stderr: the test harness shows it even when the test passes.
         let _ = std::io::Write::write_all(
@@ -200,27 +224,16 @@ fn the_avx512_driver_equals_the_pinned_one_bit_for_bit() {
     for (scheme, tau) in [("sbab2c", 0.05), ("saba2c", 0.5), ("srkn14a", 0.25)] {
         let map = TangentMap::new(&ham, &Scheme::by_name(scheme).unwrap(), tau);
         let cfg = OrbitConfig::new(tau, 2000.0);
-        fn run<const L: usize>(
-            isa: Isa,
-            map: &TangentMap<'_, HenonHeiles>,
-            ics: &[([f64; 2], [f64; 2])],
-            cfg: &OrbitConfig,
-            requests: &Requests,
-        ) -> Vec<Option<OrbitResult<2>>> {
+        let run = |isa, lanes| {
             let mut got = vec![None; ics.len()];
-            integrate_batch_on::<_, 2, 2, L>(isa, map, ics, cfg, requests, |i, r| got[i] = Some(r));
+            let sink = &mut |i, r| got[i] = Some(r);
+            integrate_batch_henon_heiles(isa, lanes, &map, &ics, &cfg, &requests, sink);
             got
-        }
+        };
         // 8 lanes (one 512-bit vector each) and 4 (the 256-bit form with 32 registers).
         let pairs = [
-            (
-                run::<8>(Isa::Avx512, &map, &ics, &cfg, &requests),
-                run::<8>(Isa::Pinned, &map, &ics, &cfg, &requests),
-            ),
-            (
-                run::<4>(Isa::Avx512, &map, &ics, &cfg, &requests),
-                run::<4>(Isa::Pinned, &map, &ics, &cfg, &requests),
-            ),
+            (run(Isa::Avx512, 8), run(Isa::Pinned, 8)),
+            (run(Isa::Avx512, 4), run(Isa::Pinned, 4)),
         ];
         for (wide, pinned) in &pairs {
             for (i, (a, b)) in wide.iter().zip(pinned).enumerate() {
@@ -373,21 +386,21 @@ fn settled_crossings_lie_within_their_bound() {
     }
 }
 
-/// Taylor orbits in SIMD lanes ([`salient_core::lanes`]) give, orbit by orbit, the bits of the
-/// scalar Taylor driver: in f64 and in double-double, 4 and 8 lanes, both instruction sets,
-/// both protocols, with crossings, energy checks and time series, escaping orbits among them,
-/// and orbits the feed abandons (at the same step as a scalar watch abandons them).
+/// The adaptive methods as a grid runs them (`integrate_feed_adaptive_henon_heiles`: Taylor,
+/// taylor-dd and DOP853 in SIMD lanes or one orbit at a time, by τ and t_final) give, orbit by
+/// orbit, the bits of the one-orbit driver (`run_adaptive_henon_heiles`): both protocols, with
+/// crossings, energy checks and time series, escaping orbits among them, and orbits the feed
+/// abandons (at the same step as a watch abandons the one orbit).
 #[test]
-fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
-    use salient_core::adaptive::{
-        integrate_adaptive_watched, Abandoned, Protocol, TaylorOrbit, Watch,
+fn adaptive_lanes_equal_scalar_orbits_bit_for_bit() {
+    use salient_core::adaptive::{Abandoned, Protocol, Watch};
+    use salient_core::batch::{BatchFeed, Feed};
+    use salient_core::lanes::{LANES, LONG_RUN_LANES};
+    use salient_core::run::{
+        adaptive_orbits_per_thread, feed_orbits_per_thread, integrate_feed_adaptive_henon_heiles,
+        run_adaptive_henon_heiles, GUIDED_DOP853_LANES,
     };
-    use salient_core::batch::{BatchFeed, Feed, Isa};
-    use salient_core::dd::DoubleDouble;
-    use salient_core::lanes::{integrate_feed_taylor_on, LaneSetup, SimdOf};
     use salient_core::section::Crossing;
-    use salient_core::taylor::{Lanewise, Scalar, Taylor};
-    use salient_core::Phase;
 
     type Outcome = Result<OrbitResult<2>, Abandoned>;
     /// Orbit `id` is abandoned at its third poll when id % 7 == 3, at its fiftieth when
@@ -404,18 +417,6 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         got: Vec<Option<Outcome>>,
         polls: Vec<usize>,
         seen: Vec<Vec<Crossing<2>>>,
-    }
-    impl<'a> Slice<'a> {
-        fn new(ics: &'a [([f64; 2], [f64; 2])]) -> Self {
-            Slice {
-                ics,
-                next: 0,
-                asked: 0,
-                got: vec![None; ics.len()],
-                polls: vec![0; ics.len()],
-                seen: vec![Vec::new(); ics.len()],
-            }
-        }
     }
     impl BatchFeed<2> for Slice<'_> {
         fn next(&mut self, all_idle: bool) -> Feed<2> {
@@ -453,67 +454,6 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         }
     }
 
-    fn check<S, const L: usize>(isa: Isa, protocol: Protocol, tau: f64, requests: Requests)
-    where
-        S: Scalar + Lanewise<Lane = S> + SimdOf<L>,
-    {
-        let ham = HenonHeiles;
-        let ics = ics();
-        let config = OrbitConfig::new(tau, 600.0);
-        let setup = LaneSetup {
-            ham: &ham,
-            delta: 1e-9,
-            protocol,
-            config: &config,
-            requests: &requests,
-        };
-        let start = |q: [f64; 2], p: [f64; 2]| Phase::<S, 2, 2> {
-            q: q.map(S::splat),
-            p: p.map(S::splat),
-            dq: [
-                [S::splat(1.0), S::splat(0.0)],
-                [S::splat(0.0), S::splat(1.0)],
-            ],
-            dp: [[S::splat(0.0); 2]; 2],
-        };
-        let mut feed = Slice::new(&ics);
-        integrate_feed_taylor_on::<_, S, 2, 2, L>(isa, &setup, start, &mut feed);
-        let mut statuses = std::collections::HashSet::new();
-        let mut abandoned = 0;
-        for (i, &(q, p)) in ics.iter().enumerate() {
-            let mut integ = TaylorOrbit::new(&ham, Taylor::new(&ham, 1e-9, 0.0, start(q, p)));
-            let want = integrate_adaptive_watched(
-                &ham,
-                &mut integ,
-                protocol,
-                &config,
-                &requests,
-                &mut Polls(i, 0),
-            );
-            let have = feed.got[i].as_ref().expect("every orbit reported");
-            let label = format!("{protocol:?} τ = {tau} L = {L} {isa:?} orbit {i}");
-            match (have, &want) {
-                (Ok(a), Ok(b)) => {
-                    assert!(same_bits(a, b), "{label}:\n lanes  {a:?}\n scalar {b:?}");
-                    // The crossings as the feed saw them while the orbit ran.
-                    let seen = OrbitResult {
-                        crossings: feed.seen[i].clone(),
-                        ..b.clone()
-                    };
-                    assert!(same_bits(&seen, b), "{label}: crossings seen");
-                    statuses.insert(b.status);
-                }
-                (Err(a), Err(b)) => {
-                    assert_eq!(a, b, "{label}");
-                    abandoned += 1;
-                }
-                _ => panic!("{label}:\n lanes  {have:?}\n scalar {want:?}"),
-            }
-        }
-        assert!(abandoned > 0, "no orbit was abandoned");
-        assert!(statuses.len() >= 3, "{statuses:?}");
-    }
-
     let crossings = Requests {
         crossings: true,
         ..Requests::default()
@@ -524,45 +464,130 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         gali: true,
         samples_per_decade: 5,
     };
-    let isas: Vec<Isa> = [Isa::Pinned, Isa::Avx512]
-        .into_iter()
-        .filter(|isa| isa.available())
-        .collect();
-    for &isa in &isas {
-        check::<f64, 4>(isa, Protocol::Restart, 0.5, crossings);
-        check::<f64, 8>(isa, Protocol::Free, 0.5, everything);
-        check::<DoubleDouble, 4>(isa, Protocol::Restart, 0.5, everything);
-        check::<DoubleDouble, 8>(isa, Protocol::Free, 0.1, crossings);
-    }
-    check::<DoubleDouble, 4>(isas[0], Protocol::Restart, 0.05, crossings);
-
-    // The production entry point: each adaptive method (taylor-dd with its momenta recomputed
-    // in double-double from the energy) in lanes or one at a time, as it runs in a grid,
-    // against `run_adaptive`, orbit by orbit.
-    use salient_core::lanes::{LANES, LONG_RUN_LANES};
-    use salient_core::method::Method;
-    use salient_core::run::{
-        adaptive_orbits_per_thread, feed_orbits_per_thread, integrate_feed_adaptive, run_adaptive,
-        MethodRun, GUIDED_DOP853_LANES,
+    let points = |energy| -> Vec<_> {
+        (0..24)
+            .filter_map(|k| {
+                let (q2, p2) = (-0.4 + 0.045 * k as f64, 0.3 - 0.025 * k as f64);
+                on_section(&HenonHeiles, energy, &[q2], &[p2]).ok()
+            })
+            .collect()
     };
-    let ham = HenonHeiles;
-    let on_surface: Vec<_> = (0..24)
-        .filter_map(|k| {
-            let (q2, p2) = (-0.4 + 0.045 * k as f64, 0.3 - 0.025 * k as f64);
-            on_section(&ham, 0.125, &[q2], &[p2]).ok()
-        })
-        .collect();
-    // (method, protocol, τ, t_final, δ, energy drift threshold)
+    let (bound, escaping) = (points(0.125), points(0.2));
+    // (method, protocol, τ, t_final, δ, energy drift threshold, requests, energy, points)
     let cases = [
-        (Method::TaylorDd, Protocol::Restart, 0.5, 400.0, 1e-7, None),
-        (Method::Taylor, Protocol::Restart, 0.05, 400.0, 1e-7, None),
-        (Method::Dop853, Protocol::Restart, 0.05, 400.0, 1e-7, None),
-        (Method::Dop853, Protocol::Free, 0.05, 400.0, 1e-7, None),
-        (Method::Dop853, Protocol::Restart, 0.5, 400.0, 1e-7, None),
+        (
+            Method::Taylor,
+            Protocol::Restart,
+            0.1,
+            600.0,
+            1e-9,
+            None,
+            crossings,
+            0.125,
+            &bound,
+        ),
+        (
+            Method::Taylor,
+            Protocol::Free,
+            0.1,
+            600.0,
+            1e-9,
+            None,
+            everything,
+            0.2,
+            &escaping,
+        ),
+        (
+            Method::Taylor,
+            Protocol::Restart,
+            0.5,
+            400.0,
+            1e-7,
+            None,
+            crossings,
+            0.125,
+            &bound,
+        ),
+        (
+            Method::TaylorDd,
+            Protocol::Restart,
+            0.5,
+            600.0,
+            1e-9,
+            None,
+            everything,
+            0.2,
+            &escaping,
+        ),
+        (
+            Method::TaylorDd,
+            Protocol::Free,
+            0.1,
+            600.0,
+            1e-9,
+            None,
+            crossings,
+            0.125,
+            &bound,
+        ),
+        (
+            Method::TaylorDd,
+            Protocol::Restart,
+            0.05,
+            400.0,
+            1e-7,
+            None,
+            crossings,
+            0.125,
+            &bound,
+        ),
+        (
+            Method::Dop853,
+            Protocol::Restart,
+            0.05,
+            400.0,
+            1e-7,
+            None,
+            crossings,
+            0.125,
+            &bound,
+        ),
+        (
+            Method::Dop853,
+            Protocol::Free,
+            0.05,
+            600.0,
+            1e-9,
+            None,
+            everything,
+            0.2,
+            &escaping,
+        ),
+        (
+            Method::Dop853,
+            Protocol::Restart,
+            0.5,
+            400.0,
+            1e-7,
+            None,
+            crossings,
+            0.125,
+            &bound,
+        ),
         // Long runs take fewer lanes.
-        (Method::TaylorDd, Protocol::Restart, 0.5, 4e4, 1e-7, None),
+        (
+            Method::TaylorDd,
+            Protocol::Restart,
+            0.5,
+            4e4,
+            1e-7,
+            None,
+            crossings,
+            0.125,
+            &bound,
+        ),
         // taylor-dd's lanes screen the energy error in f64 at every step: the drift stops
-        // the same orbits at the same step as the exact error of the scalar driver.
+        // the same orbits at the same step as the exact error of the one-orbit driver.
         (
             Method::TaylorDd,
             Protocol::Restart,
@@ -570,14 +595,31 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
             2e3,
             1e-4,
             Some(3e-5),
+            crossings,
+            0.125,
+            &bound,
         ),
     ];
+    // The cases take every path: lanes of both widths and one orbit at a time.
+    assert_eq!(
+        adaptive_orbits_per_thread(&Method::Taylor, 0.1, 600.0),
+        LANES
+    );
+    assert_eq!(adaptive_orbits_per_thread(&Method::Taylor, 0.5, 400.0), 1);
     assert_eq!(
         adaptive_orbits_per_thread(&Method::Dop853, 0.05, 400.0),
         LANES
     );
     assert_eq!(adaptive_orbits_per_thread(&Method::Dop853, 0.5, 400.0), 1);
-    let wide = salient_core::batch::Isa::detect().lanes() == GUIDED_DOP853_LANES;
+    assert_eq!(
+        adaptive_orbits_per_thread(&Method::TaylorDd, 0.5, 600.0),
+        LANES
+    );
+    assert_eq!(
+        adaptive_orbits_per_thread(&Method::TaylorDd, 0.5, 4e4),
+        LONG_RUN_LANES
+    );
+    let wide = Isa::detect().lanes() == GUIDED_DOP853_LANES;
     assert_eq!(
         feed_orbits_per_thread(&Method::Dop853, 0.05, 400.0, true),
         if wide { GUIDED_DOP853_LANES } else { LANES }
@@ -586,17 +628,14 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         feed_orbits_per_thread(&Method::Taylor, 0.05, 400.0, true),
         LANES
     );
-    assert_eq!(
-        adaptive_orbits_per_thread(&Method::TaylorDd, 0.5, 4e4),
-        LONG_RUN_LANES
-    );
-    // DOP853 in the wider batch a forecast allows, where the host has it.
+    // DOP853 also in the wider batch a forecast allows, where the host has it.
     let runs = cases
         .iter()
         .flat_map(|c| [(c, false), (c, true)])
         .filter(|(c, guided)| !guided || matches!(c.0, Method::Dop853));
+    let (mut abandoned, mut statuses) = (0, std::collections::BTreeSet::new());
     for (case, guided) in runs {
-        let (method, protocol, tau, t_final, delta, drift) = case.clone();
+        let (method, protocol, tau, t_final, delta, drift, requests, energy, ics) = case.clone();
         let run = MethodRun {
             method,
             delta: Some(delta),
@@ -606,37 +645,57 @@ fn taylor_lanes_equal_scalar_orbits_bit_for_bit() {
         if let Some(drift) = drift {
             config.thresholds.energy_drift = drift;
         }
-        let mut feed = Slice::new(&on_surface);
-        integrate_feed_adaptive::<_, 2, 2>(
-            &ham, &run, 0.125, &config, &crossings, guided, &mut feed,
-        );
-        let mut statuses = std::collections::BTreeSet::new();
-        for (i, &(q, p)) in on_surface.iter().enumerate() {
-            let want = run_adaptive::<_, 2, 2>(
-                &ham,
+        let mut feed = Slice {
+            ics,
+            next: 0,
+            asked: 0,
+            got: vec![None; ics.len()],
+            polls: vec![0; ics.len()],
+            seen: vec![Vec::new(); ics.len()],
+        };
+        integrate_feed_adaptive_henon_heiles(&run, energy, &config, &requests, guided, &mut feed);
+        let mut case_statuses = std::collections::BTreeSet::new();
+        for (i, &start) in ics.iter().enumerate() {
+            let want = run_adaptive_henon_heiles(
                 &run,
-                0.125,
-                q,
-                p,
+                energy,
+                start,
                 &config,
-                &crossings,
+                &requests,
+                Vectors::Two,
                 &mut Polls(i, 0),
             );
-            match (feed.got[i].as_ref().expect("reported"), &want) {
+            let have = feed.got[i].as_ref().expect("every orbit reported");
+            let label = format!("{run:?} τ = {tau} guided {guided}, orbit {i}");
+            match (have, &want) {
                 (Ok(a), Ok(b)) => {
-                    assert!(same_bits(a, b), "{run:?}, orbit {i}:\n{a:?}\n{b:?}");
-                    statuses.insert(format!("{:?}", a.status));
+                    assert!(same_bits(a, b), "{label}:\n lanes  {a:?}\n scalar {b:?}");
+                    // The crossings as the feed saw them while the orbit ran.
+                    let seen = OrbitResult {
+                        crossings: feed.seen[i].clone(),
+                        ..b.clone()
+                    };
+                    assert!(same_bits(&seen, b), "{label}: crossings seen");
+                    case_statuses.insert(format!("{:?}", a.status));
                 }
-                (a, b) => assert_eq!(a, b, "{run:?}, orbit {i}"),
+                (Err(a), Err(b)) => {
+                    assert_eq!(a, b, "{label}");
+                    abandoned += 1;
+                }
+                _ => panic!("{label}:\n lanes  {have:?}\n scalar {want:?}"),
             }
         }
         if drift.is_some() {
             assert!(
-                statuses.contains("EnergyDrift") && statuses.len() > 1,
-                "{delta} {statuses:?}"
+                case_statuses.contains("EnergyDrift") && case_statuses.len() > 1,
+                "{delta} {case_statuses:?}"
             );
         }
+        statuses.extend(case_statuses);
     }
+    assert!(abandoned > 0, "no orbit was abandoned");
+    assert!(statuses.contains("Escaped"), "{statuses:?}");
+    assert!(statuses.len() >= 4, "{statuses:?}");
 }
 
 /// DOP853's lanes against the one-orbit integrator step by step, on the paths the grid's

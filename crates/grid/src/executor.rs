@@ -9,14 +9,17 @@ use crate::geometry::Grid;
 use crate::ledger::{Forecast, Ledger, Mode, Outcome};
 use crate::pages::owned;
 use rayon::prelude::*;
-use salient_core::batch::{integrate_feed, BatchFeed, Feed, Isa};
+use salient_core::batch::{BatchFeed, Feed, Isa};
 use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
 };
-use salient_core::run::{adaptive_orbits_per_thread, integrate_feed_adaptive, MethodRun};
+use salient_core::run::{
+    adaptive_orbits_per_thread, integrate_feed_adaptive_henon_heiles, integrate_feed_henon_heiles,
+    MethodRun,
+};
 use salient_core::section::on_section;
-use salient_core::section::Crossing;
+use salient_core::section::{CellLattice, Crossing};
 use salient_core::{HenonHeiles, TangentMap};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Mutex, MutexGuard, TryLockError};
@@ -37,18 +40,17 @@ pub fn lanes(mode: Mode) -> usize {
     }
 }
 
-/// Runs the batched driver with [`lanes`] lanes.
+/// Runs the batched driver with [`lanes`] lanes (the copy compiled in salient-core: every
+/// feed drives it as a `dyn BatchFeed`, a call per orbit or crossing that costs nothing beside
+/// a step).
 fn drive(
     map: &TangentMap<'_, HenonHeiles>,
     config: &OrbitConfig,
     requests: &Requests,
     mode: Mode,
-    feed: &mut GridFeed<'_, '_>,
+    feed: &mut dyn BatchFeed<2>,
 ) {
-    match lanes(mode) {
-        8 => integrate_feed::<_, 2, 2, 8>(map, config, requests, feed),
-        _ => integrate_feed::<_, 2, 2, LANES>(map, config, requests, feed),
-    }
+    integrate_feed_henon_heiles(Isa::detect(), lanes(mode), map, config, requests, feed)
 }
 
 /// How every cell's orbit is integrated.
@@ -431,11 +433,8 @@ impl BatchFeed<2> for CellsFeed<'_> {
         let o = outcome(self.cell_run, self.checkpoints, self.cells[i], &r, visited);
         self.done.push((i, o));
     }
-    fn books_by_region(&self) -> bool {
-        true
-    }
-    fn same_region(&self, c: &Crossing<2>, radius: f64) -> bool {
-        self.grid.same_cell_within(c.q[1], c.p[1], radius)
+    fn books_by_cell(&self) -> Option<CellLattice> {
+        Some(self.grid.lattice())
     }
 }
 
@@ -463,19 +462,16 @@ pub fn integrate_cells(grid: &Grid, cell_run: &CellRun, mode: Mode, cells: &[u32
     let finished: Vec<(usize, Outcome)> = (0..drivers)
         .into_par_iter()
         .flat_map_iter(|_| {
-            let mut feed = GridFeed::Cells(CellsFeed {
+            let mut feed = CellsFeed {
                 grid,
                 cell_run,
                 checkpoints: &checkpoints,
                 cells,
                 cursor: &cursor,
                 done: Vec::new(),
-            });
+            };
             drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
-            match feed {
-                GridFeed::Cells(feed) => feed.done,
-                _ => unreachable!("a cells feed stays one"),
-            }
+            feed.done
         })
         .collect();
     let mut out: Vec<Option<Outcome>> = vec![None; cells.len()];
@@ -512,7 +508,7 @@ fn drive_feed(
     mode: Mode,
     map: Option<&TangentMap<'_, HenonHeiles>>,
     requests: &Requests,
-    feed: &mut GridFeed<'_, '_>,
+    feed: &mut dyn BatchFeed<2>,
 ) {
     match map {
         Some(map) => drive(map, &cell_run.config, requests, mode, feed),
@@ -580,7 +576,7 @@ pub fn integrate_stream(
     let checkpoints = cell_run.checkpoint_steps();
     let map = tangent_map(cell_run);
     rayon::broadcast(|_| {
-        let mut feed = GridFeed::Stream(StreamFeed {
+        let mut feed = StreamFeed {
             grid,
             cell_run,
             checkpoints: &checkpoints,
@@ -588,7 +584,7 @@ pub fn integrate_stream(
             claims: local.claims(),
             source,
             insisted: Vec::new(),
-        });
+        };
         drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
     });
 }
@@ -645,11 +641,8 @@ impl BatchFeed<2> for StreamFeed<'_> {
         self.local.offer(o.clone());
         self.source.ended(id as u64, Some(o), r.steps);
     }
-    fn books_by_region(&self) -> bool {
-        true
-    }
-    fn same_region(&self, c: &Crossing<2>, radius: f64) -> bool {
-        self.grid.same_cell_within(c.q[1], c.p[1], radius)
+    fn books_by_cell(&self) -> Option<CellLattice> {
+        Some(self.grid.lattice())
     }
     fn on_crossing(&mut self, id: usize, c: &Crossing<2>) {
         if let Some(to) = self.grid.cell_of(c.q[1], c.p[1]) {
@@ -1028,11 +1021,8 @@ impl BatchFeed<2> for LedgerFeed<'_, '_> {
     fn keeps_crossings(&self) -> bool {
         false
     }
-    fn books_by_region(&self) -> bool {
-        true
-    }
-    fn same_region(&self, c: &Crossing<2>, radius: f64) -> bool {
-        self.engine.grid.same_cell_within(c.q[1], c.p[1], radius)
+    fn books_by_cell(&self) -> Option<CellLattice> {
+        Some(self.engine.grid.lattice())
     }
     fn cancelled(&mut self, cell: usize) -> bool {
         self.engine.cancelled(cell as u32)
@@ -1040,57 +1030,6 @@ impl BatchFeed<2> for LedgerFeed<'_, '_> {
     fn abandoned(&mut self, cell: usize, steps: u64) {
         self.book.take(cell as u32);
         self.engine.abandoned(cell as u32, steps);
-    }
-}
-
-/// Every feed of the executor as one type, so that each driver (a batched stepper per lane
-/// count, instruction set and scheme shape, an adaptive driver per method) is compiled once
-/// rather than once per feed: a match per call costs nothing beside a step, and three copies
-/// of every driver would triple the build of this crate.
-enum GridFeed<'a, 'p> {
-    Cells(CellsFeed<'a>),
-    Stream(StreamFeed<'a>),
-    Ledger(LedgerFeed<'a, 'p>),
-}
-
-/// `$body` with `$f` bound to whichever feed `$feed` holds.
-macro_rules! each_feed {
-    ($feed:expr, $f:ident => $body:expr) => {
-        match $feed {
-            GridFeed::Cells($f) => $body,
-            GridFeed::Stream($f) => $body,
-            GridFeed::Ledger($f) => $body,
-        }
-    };
-}
-
-impl BatchFeed<2> for GridFeed<'_, '_> {
-    fn next(&mut self, all_idle: bool) -> Feed<2> {
-        each_feed!(self, f => f.next(all_idle))
-    }
-    fn finished(&mut self, id: usize, result: OrbitResult<2>) {
-        each_feed!(self, f => f.finished(id, result))
-    }
-    fn on_crossing(&mut self, id: usize, crossing: &Crossing<2>) {
-        each_feed!(self, f => f.on_crossing(id, crossing))
-    }
-    fn on_crossings(&mut self, ids: &[usize], crossings: &[Crossing<2>]) {
-        each_feed!(self, f => f.on_crossings(ids, crossings))
-    }
-    fn keeps_crossings(&self) -> bool {
-        each_feed!(self, f => f.keeps_crossings())
-    }
-    fn books_by_region(&self) -> bool {
-        each_feed!(self, f => f.books_by_region())
-    }
-    fn same_region(&self, crossing: &Crossing<2>, radius: f64) -> bool {
-        each_feed!(self, f => f.same_region(crossing, radius))
-    }
-    fn cancelled(&mut self, id: usize) -> bool {
-        each_feed!(self, f => f.cancelled(id))
-    }
-    fn abandoned(&mut self, id: usize, steps: u64) {
-        each_feed!(self, f => f.abandoned(id, steps))
     }
 }
 
@@ -1174,11 +1113,11 @@ fn run_embedded_with(
     let Method::TangentMap(scheme) = &cell_run.run.method else {
         rayon::broadcast(|_| {
             let _guard = FailOnPanic(&engine.failed);
-            let mut feed = GridFeed::Ledger(LedgerFeed {
+            let mut feed = LedgerFeed {
                 engine: &engine,
                 book: CrossingBook::default(),
                 dry_since: None,
-            });
+            };
             drive_adaptive(
                 grid,
                 cell_run,
@@ -1193,11 +1132,11 @@ fn run_embedded_with(
     let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
     rayon::broadcast(|_| {
         let _guard = FailOnPanic(&engine.failed);
-        let mut feed = GridFeed::Ledger(LedgerFeed {
+        let mut feed = LedgerFeed {
             engine: &engine,
             book: CrossingBook::default(),
             dry_since: None,
-        });
+        };
         drive(&map, &cell_run.config, &requests, mode, &mut feed);
     });
     finish(shared, &claims)
@@ -1234,10 +1173,9 @@ fn drive_adaptive(
     cell_run: &CellRun,
     requests: &Requests,
     guided: bool,
-    feed: &mut GridFeed<'_, '_>,
+    feed: &mut dyn BatchFeed<2>,
 ) {
-    integrate_feed_adaptive::<_, 2, 2>(
-        &HenonHeiles,
+    integrate_feed_adaptive_henon_heiles(
         &cell_run.run,
         grid.energy,
         &cell_run.config,

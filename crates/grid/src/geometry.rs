@@ -1,6 +1,6 @@
 //! The grid of cells on the surface of section q1 = 0, p1 > 0, its tiles and canonical order.
 
-use salient_core::section::p1_squared;
+use salient_core::section::{p1_squared, CellLattice};
 use salient_core::HenonHeiles;
 
 /// A rectangular grid over (q2, p2) with its compatible cells in canonical order.
@@ -115,19 +115,20 @@ impl Grid {
     }
 
     /// Whether every point within `r` of (q2, p2) in each coordinate gets the cell (or the
-    /// absence of one) that [`Grid::cell_of`] gives (q2, p2). The cell index along each
-    /// axis is a monotone function of the coordinate, rounding included, so equal indices at
-    /// both ends of the interval hold for everything between.
+    /// absence of one) that [`Grid::cell_of`] gives (q2, p2).
     pub fn same_cell_within(&self, q2: f64, p2: f64, r: f64) -> bool {
-        // cells_of's floors at both corners, written over one array so that the four
-        // divisions go as one vector instruction (the operations, and so the bits, are the
-        // same).
-        let (dq, dp) = self.step;
-        let x = [q2 - r, q2 + r, p2 - r, p2 + r];
-        let lo = [self.q2.0, self.q2.0, self.p2.0, self.p2.0];
-        let w = [dq, dq, dp, dp];
-        let f: [f64; 4] = core::array::from_fn(|k| ((x[k] - lo[k]) / w[k]).floor());
-        f[0] == f[1] && f[2] == f[3]
+        self.lattice().same_cell_within(q2, p2, r)
+    }
+
+    /// The grid's cells as a lattice of the section plane, the way [`Grid::cell_of`] divides
+    /// it.
+    pub fn lattice(&self) -> CellLattice {
+        CellLattice {
+            q2_origin: self.q2.0,
+            p2_origin: self.p2.0,
+            q2_width: self.step.0,
+            p2_width: self.step.1,
+        }
     }
 
     pub fn is_compatible(&self, cell: u32) -> bool {
