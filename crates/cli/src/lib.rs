@@ -1,9 +1,11 @@
 //! `salient`: the one command-line tool. It parses flags into validated specs and calls the
 //! libraries; the numerics live in `salient-core`, plots and tables in `salient-report`.
 //! Everything but the binary's entry point is this library: it needs only the metadata of the
-//! crates it calls, so it compiles while salient-grid's engines are still being optimised.
+//! crates it calls, so it compiles while salient-core's engines are still being optimised.
 
+#[cfg(feature = "distributed")]
 mod client;
+#[cfg(feature = "distributed")]
 mod cluster;
 mod human;
 mod orbit;
@@ -21,6 +23,7 @@ use tracing_subscriber::filter::Targets;
 use tracing_subscriber::layer::SubscriberExt;
 use tracing_subscriber::util::SubscriberInitExt;
 use tracing_subscriber::Layer;
+use usage::{CliError, CliResult};
 
 #[derive(Parser)]
 #[command(
@@ -46,6 +49,20 @@ enum Command {
     /// Speed against error: every method over a ladder of τ or δ on one orbit, against a
     /// double-double Taylor reference.
     Precision(precision::PrecisionArgs),
+    #[cfg(feature = "distributed")]
+    #[command(flatten)]
+    Distributed(Distributed),
+    /// A build without the distributed mode takes any other command name and refuses it
+    /// plainly (exit 2) instead of calling it unknown.
+    #[cfg(not(feature = "distributed"))]
+    #[command(external_subcommand)]
+    Other(Vec<String>),
+}
+
+/// The distributed mode's commands (cargo feature `distributed`, on by default).
+#[cfg(feature = "distributed")]
+#[derive(Subcommand)]
+enum Distributed {
     /// Serve jobs to workers over gRPC, with a durable store (distributed mode).
     Coordinator(cluster::CoordinatorArgs),
     /// Integrate tiles leased from a coordinator.
@@ -60,6 +77,43 @@ enum Command {
     Results(client::ResultsArgs),
     /// Cancel a job.
     Cancel(client::JobArgs),
+}
+
+#[cfg(feature = "distributed")]
+fn distributed(command: Distributed) -> CliResult<()> {
+    match command {
+        Distributed::Coordinator(args) => cluster::coordinator(args),
+        Distributed::Worker(args) => cluster::worker(args),
+        Distributed::Submit(args) => client::submit(args),
+        Distributed::Status(args) => client::status(args),
+        Distributed::Watch(args) => client::watch(args),
+        Distributed::Results(args) => client::results(args),
+        Distributed::Cancel(args) => client::cancel(args),
+    }
+}
+
+/// The refusal of a command name that a build without the distributed mode does not have
+/// (compiled in every build, so that the tests check it).
+#[cfg_attr(feature = "distributed", allow(dead_code))]
+fn not_in_this_build(words: Vec<String>) -> CliResult<()> {
+    const DISTRIBUTED: [&str; 7] = [
+        "coordinator",
+        "worker",
+        "submit",
+        "status",
+        "watch",
+        "results",
+        "cancel",
+    ];
+    let name = words.first().map_or("", String::as_str);
+    Err(CliError::Usage(if DISTRIBUTED.contains(&name) {
+        format!(
+            "`{name}` belongs to the distributed mode, which this build leaves out (built with \
+             --no-default-features): `cargo build --release -p salient-cli` builds it"
+        )
+    } else {
+        format!("unknown command `{name}` (commands: run, orbit, precision)")
+    }))
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -96,13 +150,10 @@ pub fn main() -> ExitCode {
         Command::Orbit(args) => orbit::run(args),
         Command::Run(args) => run::run(args),
         Command::Precision(args) => precision::run(args),
-        Command::Coordinator(args) => cluster::coordinator(args),
-        Command::Worker(args) => cluster::worker(args),
-        Command::Submit(args) => client::submit(args),
-        Command::Status(args) => client::status(args),
-        Command::Watch(args) => client::watch(args),
-        Command::Results(args) => client::results(args),
-        Command::Cancel(args) => client::cancel(args),
+        #[cfg(feature = "distributed")]
+        Command::Distributed(command) => distributed(command),
+        #[cfg(not(feature = "distributed"))]
+        Command::Other(words) => not_in_this_build(words),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -110,5 +161,31 @@ pub fn main() -> ExitCode {
             eprintln!("error: {e}");
             ExitCode::from(e.exit_code())
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::not_in_this_build;
+
+    /// A build without the distributed mode names what it left out for the distributed
+    /// commands, calls other names unknown, and exits 2 for both.
+    #[test]
+    fn a_build_without_the_distributed_mode_refuses_its_commands_plainly() {
+        let refusal = |name: &str| not_in_this_build(vec![name.to_string(), "--help".into()]);
+        let e = refusal("worker").unwrap_err();
+        assert_eq!(e.exit_code(), 2);
+        assert!(e.to_string().contains("distributed mode"), "{e}");
+        assert!(
+            e.to_string()
+                .contains("cargo build --release -p salient-cli"),
+            "{e}"
+        );
+        let e = refusal("bogus").unwrap_err();
+        assert_eq!(e.exit_code(), 2);
+        assert_eq!(
+            e.to_string(),
+            "unknown command `bogus` (commands: run, orbit, precision)"
+        );
     }
 }

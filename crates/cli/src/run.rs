@@ -10,12 +10,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use salient_core::orbit::{Class, Status};
 use salient_grid::{
-    run_embedded_forecast, takes_forecast, CellRun, Counts, Forecast, Grid, Ledger, Mode,
+    process_cpu_seconds, run_embedded_forecast, takes_forecast, CellRun, Counts, Forecast, Grid,
+    Ledger, Mode,
 };
 use salient_report::{
     render_grey_map_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LogLogPlot, Table,
 };
-use salient_worker::process_cpu_seconds;
 use serde_json::{json, Value};
 use std::fmt::Write as _;
 use std::io::IsTerminal;

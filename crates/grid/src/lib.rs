@@ -1,8 +1,10 @@
 //! Grids of initial conditions on the surface of section: geometry, tiles and canonical order
 //! ([`geometry`]), the fast-PSS [`ledger`] that commits orbit outcomes in canonical order, the
 //! tile [`executor`] that integrates cells on a rayon pool, and the classification counts
-//! ([`summary`]), and job [`spec`]s parsed from text and validated. No files, no networking.
+//! ([`summary`]), job [`spec`]s parsed from text and validated, and the process's CPU clock
+//! ([`cpu`]). No files, no networking.
 
+pub mod cpu;
 pub mod executor;
 pub mod geometry;
 pub mod ledger;
@@ -10,6 +12,7 @@ mod pages;
 pub mod spec;
 pub mod summary;
 
+pub use cpu::process_cpu_seconds;
 pub use executor::{integrate_cells, run_embedded, run_embedded_forecast, takes_forecast, CellRun};
 pub use geometry::Grid;
 pub use ledger::{Forecast, Label, Ledger, Mode, Outcome};

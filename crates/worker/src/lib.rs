@@ -11,7 +11,7 @@ pub use explain::explain_transport;
 use salient_grid::executor::{integrate_stream, CellSource, LocalLedger, Take, Verdict};
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::Outcome;
-use salient_grid::{CellRun, Grid};
+use salient_grid::{process_cpu_seconds, CellRun, Grid};
 use salient_proto::v1;
 use salient_proto::v1::worker_service_client::WorkerServiceClient;
 use salient_proto::{outcome_from_wire, MAX_MESSAGE_BYTES, PROTOCOL_VERSION};
@@ -59,24 +59,6 @@ fn free_slots(held: usize, hungry: bool, one_at_a_time: bool, max: usize) -> usi
 /// waits for the coordinator's fsync while the lanes run dry. Two beat one; three drop more
 /// and are no faster (figures: docs/performance.md).
 const HUNGRY_LEASES: usize = 2;
-
-/// CPU time of this process (user + system) in seconds, from /proc on Linux; NaN elsewhere.
-pub fn process_cpu_seconds() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
-        return f64::NAN;
-    };
-    // Fields after the command name (which may contain spaces) start after the last ')'.
-    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else {
-        return f64::NAN;
-    };
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    // utime and stime are fields 14 and 15 of the whole line, 12 and 13 after ')'.
-    let ticks = |i: usize| fields.get(i).and_then(|f| f.parse::<f64>().ok());
-    match (ticks(11), ticks(12)) {
-        (Some(u), Some(s)) => (u + s) / 100.0,
-        _ => f64::NAN,
-    }
-}
 
 /// An endpoint for `url` with TLS when it is https.
 pub fn endpoint(url: &str, tls_ca: Option<&[u8]>) -> Result<Endpoint, String> {
