@@ -170,6 +170,7 @@ pub fn locate_upward<H: Hamiltonian<N>, const N: usize>(
 /// [`locate_upward`] for up to `L` crossings at once, the searches of all of them advanced
 /// together in SIMD lanes: each lane performs the operations of a search alone, so a result
 /// does not depend on its companions (and [`locate_upward`] is this with one lane).
+#[inline]
 pub fn locate_upward_lanes<H: Hamiltonian<N>, const N: usize, const L: usize>(
     map: &TangentMap<'_, H>,
     steps: &[CrossingStep<N>],
@@ -191,6 +192,7 @@ pub fn locate_upward_lanes<H: Hamiltonian<N>, const N: usize, const L: usize>(
 /// bit, while the first one, at the guess of the crossing model, is 1e-6–1e-5 away in time
 /// at τ = 0.5, well inside a cell of a 400×400 grid for all but a few per cent of the
 /// crossings.
+#[inline]
 pub fn locate_upward_lanes_settling<H: Hamiltonian<N>, const N: usize, const L: usize>(
     map: &TangentMap<'_, H>,
     steps: &[CrossingStep<N>],
@@ -199,6 +201,8 @@ pub fn locate_upward_lanes_settling<H: Hamiltonian<N>, const N: usize, const L: 
     locate_lanes(map, steps, Some(settles))
 }
 
+// Inline: copied into the caller's codegen unit, where `settles` inlines into the search.
+#[inline]
 fn locate_lanes<H: Hamiltonian<N>, S, const N: usize, const L: usize>(
     map: &TangentMap<'_, H>,
     steps: &[CrossingStep<N>],
