@@ -73,8 +73,8 @@ pub enum Vectors {
 }
 
 /// [`run_orbit`] on Hénon–Heiles. The single-orbit commands (`salient orbit`, `salient
-/// precision`) call this rather than instantiating the integrators themselves: compiled here,
-/// their loops build in parallel with salient-grid's instead of after it.
+/// precision`) and the tests call this rather than instantiating the integrators themselves:
+/// compiled here once, with the grid's drivers.
 pub fn run_henon_heiles(
     run: &MethodRun,
     energy: f64,
