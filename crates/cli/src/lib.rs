@@ -92,19 +92,23 @@ fn distributed(command: Distributed) -> CliResult<()> {
     }
 }
 
+/// The names of the distributed mode's commands, for a build without them (a test checks them
+/// against `Distributed`).
+#[cfg_attr(feature = "distributed", allow(dead_code))]
+const DISTRIBUTED: [&str; 7] = [
+    "coordinator",
+    "worker",
+    "submit",
+    "status",
+    "watch",
+    "results",
+    "cancel",
+];
+
 /// The refusal of a command name that a build without the distributed mode does not have
 /// (compiled in every build, so that the tests check it).
 #[cfg_attr(feature = "distributed", allow(dead_code))]
 fn not_in_this_build(words: Vec<String>) -> CliResult<()> {
-    const DISTRIBUTED: [&str; 7] = [
-        "coordinator",
-        "worker",
-        "submit",
-        "status",
-        "watch",
-        "results",
-        "cancel",
-    ];
     let name = words.first().map_or("", String::as_str);
     Err(CliError::Usage(if DISTRIBUTED.contains(&name) {
         format!(
@@ -167,6 +171,16 @@ pub fn main() -> ExitCode {
 #[cfg(test)]
 mod tests {
     use super::not_in_this_build;
+
+    /// The names a build without the distributed mode refuses are its commands, all of them.
+    #[cfg(feature = "distributed")]
+    #[test]
+    fn the_refused_names_are_the_distributed_commands() {
+        use super::{Distributed, DISTRIBUTED};
+        let cmd = <Distributed as clap::Subcommand>::augment_subcommands(clap::Command::new("x"));
+        let names: Vec<&str> = cmd.get_subcommands().map(|c| c.get_name()).collect();
+        assert_eq!(names, DISTRIBUTED);
+    }
 
     /// A build without the distributed mode names what it left out for the distributed
     /// commands, calls other names unknown, and exits 2 for both.
