@@ -161,7 +161,7 @@ async fn connect(c: &Connection) -> CliResult<Client> {
 }
 
 /// The spec as the JSON the coordinator takes (a valid TOML spec converts losslessly).
-fn spec_json(path: &Path, max_cells: usize) -> CliResult<(JobSpec, String)> {
+pub(crate) fn spec_json(path: &Path, max_cells: usize) -> CliResult<(JobSpec, String)> {
     let job = spec::load(path, max_cells)?;
     let text = std::fs::read_to_string(path)
         .map_err(|e| CliError::Usage(format!("spec: cannot read {}: {e}", path.display())))?;

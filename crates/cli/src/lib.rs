@@ -12,6 +12,8 @@ mod orbit;
 mod output;
 mod precision;
 mod run;
+#[cfg(feature = "distributed")]
+mod simulate;
 mod spec;
 mod usage;
 
@@ -77,6 +79,9 @@ enum Distributed {
     Results(client::ResultsArgs),
     /// Cancel a job.
     Cancel(client::JobArgs),
+    /// Predict how a job scales over many workers: the real scheduler against simulated
+    /// workers in virtual time (table and speedup plot).
+    Simulate(simulate::SimulateArgs),
 }
 
 #[cfg(feature = "distributed")]
@@ -89,13 +94,14 @@ fn distributed(command: Distributed) -> CliResult<()> {
         Distributed::Watch(args) => client::watch(args),
         Distributed::Results(args) => client::results(args),
         Distributed::Cancel(args) => client::cancel(args),
+        Distributed::Simulate(args) => simulate::simulate(args),
     }
 }
 
 /// The names of the distributed mode's commands, for a build without them (a test checks them
 /// against `Distributed`).
 #[cfg_attr(feature = "distributed", allow(dead_code))]
-const DISTRIBUTED: [&str; 7] = [
+const DISTRIBUTED: [&str; 8] = [
     "coordinator",
     "worker",
     "submit",
@@ -103,6 +109,7 @@ const DISTRIBUTED: [&str; 7] = [
     "watch",
     "results",
     "cancel",
+    "simulate",
 ];
 
 /// The refusal of a command name that a build without the distributed mode does not have

@@ -1,0 +1,286 @@
+//! `salient simulate`: how a job scales over many workers, predicted by the scaling simulator
+//! (the real scheduler against simulated workers in virtual time).
+
+use crate::client::spec_json;
+use crate::output::Staged;
+use crate::usage::{runtime, CliError, CliResult};
+use clap::Args;
+use salient_coordinator::scheduler::Config;
+use salient_report::{render_loglog_png, Line, LogLogPlot, Table};
+use salient_sim::{Params, Point, Simulation};
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+#[derive(Args, Debug)]
+pub struct SimulateArgs {
+    /// The job spec (TOML or JSON), as `salient submit` takes it.
+    spec: PathBuf,
+    /// Worker counts to simulate, comma-separated (one worker is simulated too: the yardstick).
+    #[arg(long, default_value = "1,4,16,64,256", value_delimiter = ',')]
+    workers: Vec<usize>,
+    /// Threads of each worker.
+    #[arg(long, default_value_t = 1)]
+    threads: usize,
+    /// Orbits a worker thread runs at once (default: what the product runs for the method).
+    #[arg(long)]
+    lanes: Option<usize>,
+    /// Round trip between a worker and the coordinator, in milliseconds.
+    #[arg(long = "rtt-ms", default_value_t = 0.5)]
+    rtt_ms: f64,
+    /// Network bandwidth each way, in Gbit/s.
+    #[arg(long = "bandwidth-gbit", default_value_t = 10.0)]
+    bandwidth_gbit: f64,
+    /// Each one-way latency varies by up to this fraction (seeded, reproducible).
+    #[arg(long, default_value_t = 0.1)]
+    jitter: f64,
+    /// Seed of the latency jitter.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// The coordinator's poll interval for busy workers, in milliseconds (`coordinator --poll-ms`).
+    #[arg(long = "poll-ms", default_value_t = 200)]
+    poll_ms: u64,
+    /// Fast PSS: cells per worker thread in one lease (`coordinator --lease-cells`).
+    #[arg(long = "lease-cells", default_value_t = Config::default().lease_cells_per_thread)]
+    lease_cells: usize,
+    /// CPU nanoseconds per orbit-step in a thread's full lanes (default: measured here first).
+    #[arg(long = "step-ns")]
+    step_ns: Option<f64>,
+    /// A fixed coordinator cost per poll, in microseconds (default: the scheduler's CPU time
+    /// on each poll, measured as it runs).
+    #[arg(long = "coordinator-us")]
+    coordinator_us: Option<f64>,
+    /// Write simulate.md, simulate.csv, simulate.json and speedup.png here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print exactly one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+fn params(args: &SimulateArgs) -> CliResult<Params> {
+    let usage = |m: String| Err(CliError::Usage(m));
+    if args.workers.is_empty() || args.workers.iter().any(|&w| !(1..=100_000).contains(&w)) {
+        return usage(format!(
+            "--workers must list counts in 1..=100000 (got {:?})",
+            args.workers
+        ));
+    }
+    if !(1..=4096).contains(&args.threads) {
+        return usage(format!(
+            "--threads must be in 1..=4096 (got {})",
+            args.threads
+        ));
+    }
+    if args.lanes.is_some_and(|l| !(1..=64).contains(&l)) {
+        return usage(format!("--lanes must be in 1..=64 (got {:?})", args.lanes));
+    }
+    if !(args.rtt_ms.is_finite() && (0.0..=60_000.0).contains(&args.rtt_ms)) {
+        return usage(format!(
+            "--rtt-ms must be in 0..=60000 (got {})",
+            args.rtt_ms
+        ));
+    }
+    if !(args.bandwidth_gbit.is_finite() && args.bandwidth_gbit > 0.0) {
+        return usage(format!(
+            "--bandwidth-gbit must be positive (got {})",
+            args.bandwidth_gbit
+        ));
+    }
+    if !(args.jitter.is_finite() && (0.0..1.0).contains(&args.jitter)) {
+        return usage(format!("--jitter must be in [0, 1) (got {})", args.jitter));
+    }
+    if !(10..=5000).contains(&args.poll_ms) {
+        return usage(format!(
+            "--poll-ms must be in 10..=5000 (got {})",
+            args.poll_ms
+        ));
+    }
+    if !(1..=65_536).contains(&args.lease_cells) {
+        return usage(format!(
+            "--lease-cells must be in 1..=65536 (got {})",
+            args.lease_cells
+        ));
+    }
+    if args.step_ns.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
+        return usage(format!(
+            "--step-ns must be positive (got {:?})",
+            args.step_ns
+        ));
+    }
+    if args
+        .coordinator_us
+        .is_some_and(|c| !(c.is_finite() && c >= 0.0))
+    {
+        return usage(format!(
+            "--coordinator-us must be at least 0 (got {:?})",
+            args.coordinator_us
+        ));
+    }
+    let config = Config {
+        poll: Duration::from_millis(args.poll_ms),
+        lease_cells_per_thread: args.lease_cells,
+        ..Config::default()
+    };
+    Ok(Params {
+        threads: args.threads,
+        lanes: args.lanes,
+        rtt_ns: (args.rtt_ms * 1e6) as u64,
+        bandwidth: args.bandwidth_gbit * 1.25e8,
+        jitter: args.jitter,
+        seed: args.seed,
+        config,
+        step_ns: args.step_ns,
+        coordinator_ns: args.coordinator_us.map(|us| (us * 1e3) as u64),
+        ..Params::default()
+    })
+}
+
+pub fn simulate(args: SimulateArgs) -> CliResult<()> {
+    let params = params(&args)?;
+    let (job, json_text) = spec_json(&args.spec, salient_grid::spec::MAX_CELLS)?;
+    let staged = args
+        .out
+        .as_deref()
+        .map(|o| Staged::begin(o, "--out"))
+        .transpose()?;
+    let mut sim = Simulation::new(&json_text, params).map_err(CliError::Usage)?;
+    if !args.json {
+        eprintln!(
+            "simulating {} ({} run(s)): {} lane(s) per thread, {:.2} ns per orbit-step{}",
+            job.name,
+            job.runs.len(),
+            sim.lanes(),
+            sim.step_ns(),
+            if args.step_ns.is_some() {
+                ""
+            } else {
+                " (measured here)"
+            }
+        );
+    }
+    let quiet = args.json;
+    let points = sim
+        .sweep(&args.workers, |p| {
+            if !quiet {
+                eprintln!(
+                    "  W = {:>6}: {:.3} s simulated, speedup {:.2} (bound {:.2})",
+                    p.stats.workers, p.stats.wall_s, p.speedup, p.bound
+                );
+            }
+        })
+        .map_err(|e| CliError::Runtime(format!("simulation: {e}")))?;
+    let table = table(&points);
+    let summary = json!({
+        "spec": job.name,
+        "threads": args.threads,
+        "lanes": sim.lanes(),
+        "step_ns": sim.step_ns(),
+        "rtt_ms": args.rtt_ms,
+        "bandwidth_gbit": args.bandwidth_gbit,
+        "poll_ms": args.poll_ms,
+        "lease_cells": args.lease_cells,
+        "coordinator_us": args.coordinator_us,
+        "traced_orbits": sim.traced(),
+        "sequential": sim.sequential(),
+        "points": points,
+    });
+    if let Some(staged) = staged {
+        write_outputs(staged.path(), &job.name, &table, &summary, &points)?;
+        staged.publish()?;
+    }
+    if args.json {
+        println!("{summary}");
+    } else {
+        print!("{}", table.to_markdown());
+        if let Some(dir) = &args.out {
+            println!(
+                "wrote {}/simulate.md, simulate.csv, simulate.json, speedup.png",
+                dir.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+fn table(points: &[Point]) -> Table {
+    let mut table = Table::new(&[
+        "workers",
+        "wall_s",
+        "speedup",
+        "bound",
+        "speedup/bound",
+        "steps",
+        "steps vs 1",
+        "extra steps %",
+        "abandoned",
+        "polls",
+        "coord busy %",
+        "coord µs/outcome",
+        "relay MB",
+    ]);
+    for p in points {
+        let s = &p.stats;
+        table.push(vec![
+            s.workers.to_string(),
+            format!("{:.3}", s.wall_s),
+            format!("{:.2}", p.speedup),
+            format!("{:.2}", p.bound),
+            format!("{:.2}", p.speedup / p.bound),
+            format!("{:.4e}", s.steps as f64),
+            format!("{:.3}", p.steps_vs_one),
+            format!("{:.1}", p.extra_steps_pct),
+            s.orbits_abandoned.to_string(),
+            s.polls.to_string(),
+            format!("{:.1}", p.coordinator_busy_pct),
+            format!("{:.1}", p.coordinator_us_per_outcome),
+            format!("{:.1}", s.relay_bytes as f64 / 1e6),
+        ]);
+    }
+    table
+}
+
+fn write_outputs(
+    dir: &Path,
+    name: &str,
+    table: &Table,
+    summary: &serde_json::Value,
+    points: &[Point],
+) -> CliResult<()> {
+    let write = |file: &str, text: String| {
+        let path = dir.join(file);
+        std::fs::write(&path, text).map_err(|e| runtime(&format!("writing {}", path.display()), e))
+    };
+    write("simulate.md", table.to_markdown())?;
+    write("simulate.csv", table.to_csv())?;
+    write(
+        "simulate.json",
+        serde_json::to_string_pretty(summary).expect("JSON") + "\n",
+    )?;
+    let ws: Vec<f64> = points.iter().map(|p| p.stats.workers as f64).collect();
+    let speedups: Vec<f64> = points.iter().map(|p| p.speedup).collect();
+    let bounds: Vec<f64> = points.iter().map(|p| p.bound).collect();
+    let title = format!("simulated speedup over one worker, {name}");
+    let plot = LogLogPlot {
+        title: &title,
+        x_label: "workers W",
+        y_label: "speedup over one worker",
+        lines: vec![
+            Line {
+                label: "simulated",
+                xs: &ws,
+                ys: &speedups,
+            },
+            Line {
+                label: "bound min(W, T1 / longest orbit)",
+                xs: &ws,
+                ys: &bounds,
+            },
+        ],
+        hlines: Vec::new(),
+        point_labels: Vec::new(),
+        markers: true,
+    };
+    render_loglog_png(&plot, &dir.join("speedup.png"), 1200, 900)
+        .map_err(|e| runtime("drawing speedup.png", e))
+}

@@ -1,0 +1,557 @@
+//! The scaling simulator: the coordinator's real [`Scheduler`] — leases, ledger, skips, relays,
+//! its store in memory — answering W simulated workers in virtual time. Each worker runs the
+//! product's stream decisions (the claims and local ledger of `salient worker`) over orbits
+//! replayed from real integrations ([`traces`]): every orbit a worker starts is integrated for
+//! real once, and its steps and crossings then take virtual time at a calibrated cost per step.
+//! The coordinator is one server: each poll waits for the polls before it and takes the CPU
+//! time the scheduler really spent on it (decoding, answering, encoding), so its saturation
+//! shows. Network latency, bandwidth, threads, lanes, poll interval and lease sizes are
+//! parameters. Results are byte-identical whatever the schedule, so only time and work are
+//! simulated.
+
+mod traces;
+mod worker;
+mod world;
+
+use prost::Message;
+use salient_coordinator::scheduler::{Config, Scheduler};
+use salient_grid::spec::{self, JobSpec};
+use salient_grid::{executor, Grid};
+use salient_proto::{v1, PROTOCOL_VERSION};
+use salient_store::Store;
+use serde::Serialize;
+use std::collections::VecDeque;
+use traces::Traces;
+pub use traces::{calibrate_step_ns, thread_cpu_ns};
+use tracing::subscriber::NoSubscriber;
+use worker::{Shape, SimWorker, FIRST_POLL_NS};
+use world::{Event, World};
+
+/// What is simulated besides the spec.
+#[derive(Clone, Copy, Debug)]
+pub struct Params {
+    /// Threads of each worker.
+    pub threads: usize,
+    /// Orbits a worker thread runs at once; `None`: what the product runs (the stepper's lanes
+    /// for tangent-map methods, the adaptive driver's orbits per thread otherwise).
+    pub lanes: Option<usize>,
+    /// Round trip between a worker and the coordinator, without the transfer.
+    pub rtt_ns: u64,
+    /// Bytes per second each way.
+    pub bandwidth: f64,
+    /// Each one-way latency varies by up to this fraction, from a seeded sequence.
+    pub jitter: f64,
+    pub seed: u64,
+    /// The coordinator's timing and lease sizes.
+    pub config: Config,
+    /// Leases a worker holds at once in full mode.
+    pub max_leases: usize,
+    /// CPU nanoseconds per step of one orbit in a thread's full lanes; `None`: calibrated on
+    /// this machine.
+    pub step_ns: Option<f64>,
+    /// Nanoseconds the coordinator takes per poll; `None`: the CPU time the scheduler really
+    /// takes (then the simulated times vary from run to run by the measurement's noise).
+    pub coordinator_ns: Option<u64>,
+    /// Virtual seconds without a new outcome after which the simulation reports a stall.
+    pub stall_s: f64,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            threads: 1,
+            lanes: None,
+            rtt_ns: 500_000,
+            bandwidth: 1.25e9,
+            jitter: 0.1,
+            seed: 1,
+            config: Config::default(),
+            max_leases: 2,
+            step_ns: None,
+            coordinator_ns: None,
+            stall_s: 600.0,
+        }
+    }
+}
+
+/// One simulated job with W workers.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct RunStats {
+    pub workers: usize,
+    /// From the first lease to the job's end, virtual seconds.
+    pub wall_s: f64,
+    pub orbits_finished: u64,
+    pub orbits_abandoned: u64,
+    /// Steps integrated by all workers, abandoned orbits' included.
+    pub steps: u64,
+    pub polls: u64,
+    pub leases: u64,
+    pub leased_cells: u64,
+    /// Outcomes the coordinator received.
+    pub outcomes: u64,
+    /// CPU seconds the scheduler spent answering polls.
+    pub coordinator_cpu_s: f64,
+    /// Seconds the coordinator was busy (its CPU, or the fixed cost per poll).
+    pub coordinator_busy_s: f64,
+    pub request_bytes: u64,
+    pub reply_bytes: u64,
+    /// Of the replies: relayed outcomes.
+    pub relay_bytes: u64,
+}
+
+/// What the sequential rule integrates: every cell's own orbit in canonical order unless an
+/// earlier orbit labelled it.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct Sequential {
+    pub orbits: u64,
+    pub steps: u64,
+    /// Steps of the longest of those orbits.
+    pub longest_steps: u64,
+}
+
+/// One row of a scaling table.
+#[derive(Clone, Debug, Serialize)]
+pub struct Point {
+    #[serde(flatten)]
+    pub stats: RunStats,
+    pub threads: usize,
+    /// One worker's wall over this one's.
+    pub speedup: f64,
+    /// min(W, T₁ / T_longest_orbit): no schedule beats it.
+    pub bound: f64,
+    /// Steps integrated over one worker's.
+    pub steps_vs_one: f64,
+    /// Steps integrated beyond the sequential rule's, in % of those.
+    pub extra_steps_pct: f64,
+    /// The coordinator's busy share of the wall, in %.
+    pub coordinator_busy_pct: f64,
+    pub coordinator_us_per_outcome: f64,
+}
+
+/// A spec and parameters, with the orbits traced so far (shared by every worker count).
+pub struct Simulation {
+    spec: JobSpec,
+    spec_json: String,
+    grid: Grid,
+    params: Params,
+    traces: Vec<Traces>,
+    lanes: usize,
+    step_ns: f64,
+}
+
+impl Simulation {
+    /// Reads the spec (the JSON the coordinator takes) and calibrates the cost of a step unless
+    /// it is given.
+    pub fn new(spec_json: &str, params: Params) -> Result<Self, String> {
+        let spec = spec::parse(spec_json, true).map_err(|e| e.0)?;
+        if params.threads == 0 {
+            return Err("threads must be at least 1".into());
+        }
+        let grid = spec.grid();
+        let mode = spec.grid.mode;
+        let first = spec.cell_run(0);
+        let lanes = params.lanes.unwrap_or_else(|| match &first.run.method {
+            salient_core::Method::TangentMap(_) => executor::lanes(mode),
+            m => salient_core::run::adaptive_orbits_per_thread(
+                m,
+                first.config.tau,
+                first.config.t_final,
+            ),
+        });
+        if lanes == 0 {
+            return Err("lanes must be at least 1".into());
+        }
+        let traces = (0..spec.runs.len())
+            .map(|i| Traces::new(&grid, spec.cell_run(i), mode))
+            .collect();
+        let step_ns = match params.step_ns {
+            Some(ns) if ns > 0.0 && ns.is_finite() => ns,
+            Some(ns) => return Err(format!("step cost must be positive (got {ns} ns)")),
+            None => calibrate_step_ns(&grid, &first, mode),
+        };
+        Ok(Simulation {
+            spec,
+            spec_json: spec_json.to_string(),
+            grid,
+            params,
+            traces,
+            lanes,
+            step_ns,
+        })
+    }
+
+    /// CPU nanoseconds per orbit-step in full lanes.
+    pub fn step_ns(&self) -> f64 {
+        self.step_ns
+    }
+
+    pub fn lanes(&self) -> usize {
+        self.lanes
+    }
+
+    /// Orbits integrated for real so far (the traces).
+    pub fn traced(&self) -> usize {
+        self.traces.iter().map(|t| t.integrated).sum()
+    }
+
+    /// Virtual nanoseconds a lane takes per step.
+    fn lane_step_ns(&self) -> f64 {
+        self.step_ns * self.lanes as f64
+    }
+
+    /// What the sequential rule integrates, summed over the runs (the longest orbit: of all).
+    pub fn sequential(&mut self) -> Sequential {
+        let mut total = Sequential::default();
+        let mode = self.spec.grid.mode;
+        for traces in &mut self.traces {
+            let labels = salient_grid::ledger::sequential(&self.grid, mode, |c| {
+                traces.get(c).outcome.clone()
+            });
+            for (cell, label) in labels.iter().enumerate() {
+                if label.is_some_and(|l| l.source as usize == cell) {
+                    let steps = traces.get(cell as u32).outcome.steps;
+                    total.orbits += 1;
+                    total.steps += steps;
+                    total.longest_steps = total.longest_steps.max(steps);
+                }
+            }
+        }
+        total
+    }
+
+    /// Simulates the job with `workers` workers.
+    pub fn run(&mut self, workers: usize) -> Result<RunStats, String> {
+        if workers == 0 {
+            return Err("workers must be at least 1".into());
+        }
+        // The scheduler's log lines (jobs, leases, runs done) tell of simulated events: not shown.
+        tracing::subscriber::with_default(NoSubscriber::default(), || {
+            let store = Store::open_in_memory().map_err(|e| e.to_string())?;
+            let mut scheduler = Scheduler::new(store, self.params.config)?;
+            let (job, _) = scheduler
+                .submit(&self.spec_json)
+                .map_err(|e| e.message().to_string())?;
+            let traces = std::mem::take(&mut self.traces);
+            let mut world = World::new(self.grid.clone(), traces, self.params.seed);
+            let result = self.drive(&mut scheduler, job, workers, &mut world);
+            self.traces = std::mem::take(&mut world.traces);
+            result
+        })
+    }
+
+    /// One-way latency of a message of `bytes`.
+    fn latency(&self, world: &mut World, bytes: usize) -> u64 {
+        let half = self.params.rtt_ns as f64 / 2.0;
+        let jittered = half * (1.0 + self.params.jitter * world.unit());
+        (jittered.max(0.0) + bytes as f64 / self.params.bandwidth * 1e9) as u64
+    }
+
+    fn drive(
+        &self,
+        scheduler: &mut Scheduler,
+        job: u64,
+        workers: usize,
+        world: &mut World,
+    ) -> Result<RunStats, String> {
+        let shape = Shape {
+            threads: self.params.threads,
+            lanes: self.lanes,
+            lane_step_ns: self.lane_step_ns(),
+            poll_steps: salient_core::batch::poll_interval(self.spec.cell_run(0).config.tau),
+            max_leases: self.params.max_leases,
+            busy_poll_ns: self.params.config.poll.as_nanos() as u64,
+        };
+        let mut ws = Vec::with_capacity(workers);
+        for i in 0..workers {
+            let reg = scheduler
+                .register(&v1::RegisterRequest {
+                    protocol_version: PROTOCOL_VERSION,
+                    name: format!("simulated-{i}"),
+                    threads: self.params.threads as u32,
+                })
+                .map_err(|e| e.message().to_string())?;
+            let mut w = SimWorker::new(i, reg.worker_id, job, shape, self.spec.grid.mode);
+            w.schedule_send(world, FIRST_POLL_NS);
+            ws.push(w);
+        }
+        let mut coordinator = Coordinator {
+            requests: vec![None; workers],
+            replies: vec![None; workers],
+            waiting: VecDeque::new(),
+            busy: false,
+            first_lease_ns: None,
+            finished_ns: None,
+            last_outcome_ns: 0,
+            stats: RunStats {
+                workers,
+                ..RunStats::default()
+            },
+        };
+        let stall_ns = (self.params.stall_s * 1e9) as u64;
+        while let Some(event) = world.pop() {
+            match event {
+                Event::Send { worker, gen } => {
+                    let w = &mut ws[worker];
+                    if gen != w.timer_gen || w.in_flight {
+                        continue;
+                    }
+                    let bytes = w.poll_request().encode_to_vec();
+                    coordinator.stats.request_bytes += bytes.len() as u64;
+                    let at = world.now + self.latency(world, bytes.len());
+                    coordinator.requests[worker] = Some(bytes);
+                    world.at(at, Event::Arrive { worker });
+                }
+                Event::Arrive { worker } => {
+                    coordinator.waiting.push_back(worker);
+                    if !coordinator.busy {
+                        self.serve(scheduler, job, &mut coordinator, world)?;
+                    }
+                }
+                Event::Served => {
+                    coordinator.busy = false;
+                    if coordinator.finished_ns.is_some() {
+                        break;
+                    }
+                    if world.now - coordinator.last_outcome_ns > stall_ns {
+                        return Err(format!(
+                            "the simulated job made no progress for {} virtual seconds \
+                             (at {:.3} s): a livelock in the schedule",
+                            self.params.stall_s,
+                            world.now as f64 * 1e-9
+                        ));
+                    }
+                    if !coordinator.waiting.is_empty() {
+                        self.serve(scheduler, job, &mut coordinator, world)?;
+                    }
+                }
+                Event::Reply { worker } => {
+                    let bytes = coordinator.replies[worker].take().expect("a reply");
+                    let reply = v1::PollReply::decode(&bytes[..]).map_err(|e| e.to_string())?;
+                    ws[worker].on_reply(world, reply)?;
+                }
+                Event::Crossing { worker, orbit } => ws[worker].on_crossing(world, orbit),
+                Event::End { worker, orbit } => ws[worker].on_end(world, orbit),
+                Event::Abandon { worker, orbit } => ws[worker].on_abandon(world, orbit),
+                Event::Force { worker, gen } => ws[worker].on_force(world, gen),
+            }
+        }
+        let finished = coordinator
+            .finished_ns
+            .ok_or("the simulation ran out of events before the job finished")?;
+        let mut stats = coordinator.stats;
+        stats.wall_s = (finished - coordinator.first_lease_ns.unwrap_or(0)) as f64 * 1e-9;
+        for w in &ws {
+            stats.orbits_finished += w.totals.orbits_finished;
+            stats.orbits_abandoned += w.totals.orbits_abandoned;
+            stats.steps += w.totals.steps;
+            stats.polls += w.totals.polls;
+        }
+        Ok(stats)
+    }
+
+    /// The coordinator answers the first waiting poll: the real scheduler, timed.
+    fn serve(
+        &self,
+        scheduler: &mut Scheduler,
+        job: u64,
+        c: &mut Coordinator,
+        world: &mut World,
+    ) -> Result<(), String> {
+        let Some(worker) = c.waiting.pop_front() else {
+            return Ok(());
+        };
+        let bytes = c.requests[worker].take().expect("a request");
+        let cpu_start = thread_cpu_ns();
+        let req = v1::PollRequest::decode(&bytes[..]).map_err(|e| e.to_string())?;
+        scheduler.begin_group();
+        let reply = scheduler.poll(&req);
+        scheduler.commit_group(Vec::new());
+        let reply = reply.map_err(|e| format!("the scheduler refused a poll: {}", e.message()))?;
+        let out = reply.encode_to_vec();
+        let cpu = thread_cpu_ns().saturating_sub(cpu_start);
+        // The store thread commits while the loop goes on; waiting for it here (outside the
+        // timed part) makes the acknowledgements the next reply carries independent of how
+        // fast this machine's store thread is, so a seed fixes the schedule.
+        scheduler.sync_store();
+        let service = self.params.coordinator_ns.unwrap_or(cpu);
+        let outcomes: usize = req.reports.iter().map(|r| r.outcomes.len()).sum();
+        if outcomes > 0 {
+            c.last_outcome_ns = world.now;
+        }
+        c.stats.outcomes += outcomes as u64;
+        c.stats.coordinator_cpu_s += cpu as f64 * 1e-9;
+        c.stats.coordinator_busy_s += service as f64 * 1e-9;
+        c.stats.reply_bytes += out.len() as u64;
+        c.stats.leases += reply.leases.len() as u64;
+        c.stats.leased_cells += reply
+            .leases
+            .iter()
+            .map(|l| l.cells.len() as u64)
+            .sum::<u64>();
+        c.stats.relay_bytes += reply
+            .relays
+            .iter()
+            .flat_map(|r| &r.outcomes)
+            .map(|o| o.len() as u64)
+            .sum::<u64>();
+        if c.first_lease_ns.is_none() && !reply.leases.is_empty() {
+            c.first_lease_ns = Some(world.now);
+        }
+        let done_at = world.now + service;
+        if c.finished_ns.is_none()
+            && scheduler
+                .is_finished(job)
+                .map_err(|e| e.message().to_string())?
+        {
+            c.finished_ns = Some(done_at);
+        }
+        c.busy = true;
+        world.at(done_at, Event::Served);
+        let at = done_at + self.latency(world, out.len());
+        c.replies[worker] = Some(out);
+        world.at(at, Event::Reply { worker });
+        Ok(())
+    }
+
+    /// Simulates every worker count of `workers` (one worker first, as the yardstick, whether
+    /// listed or not), calling `each` with every row as it is done.
+    pub fn sweep(
+        &mut self,
+        workers: &[usize],
+        mut each: impl FnMut(&Point),
+    ) -> Result<Vec<Point>, String> {
+        let one = self.run(1)?;
+        let sequential = self.sequential();
+        let longest_s = sequential.longest_steps as f64 * self.lane_step_ns() * 1e-9;
+        let mut points = Vec::new();
+        for &w in workers {
+            let stats = if w == 1 { one.clone() } else { self.run(w)? };
+            let bound = (w as f64).min(one.wall_s / longest_s.max(1e-12));
+            let speedup = one.wall_s / stats.wall_s.max(1e-12);
+            let point = Point {
+                threads: self.params.threads,
+                speedup,
+                bound,
+                steps_vs_one: stats.steps as f64 / one.steps.max(1) as f64,
+                extra_steps_pct: 100.0
+                    * (stats.steps as f64 / sequential.steps.max(1) as f64 - 1.0),
+                coordinator_busy_pct: 100.0 * stats.coordinator_busy_s / stats.wall_s.max(1e-12),
+                coordinator_us_per_outcome: 1e6 * stats.coordinator_cpu_s
+                    / stats.outcomes.max(1) as f64,
+                stats,
+            };
+            each(&point);
+            points.push(point);
+        }
+        Ok(points)
+    }
+}
+
+/// The coordinator's side of the simulation: the polls waiting for it and what it answered.
+struct Coordinator {
+    requests: Vec<Option<Vec<u8>>>,
+    replies: Vec<Option<Vec<u8>>>,
+    waiting: VecDeque<usize>,
+    busy: bool,
+    first_lease_ns: Option<u64>,
+    finished_ns: Option<u64>,
+    last_outcome_ns: u64,
+    stats: RunStats,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small fast-PSS grid, in the JSON the coordinator takes.
+    fn spec(cells: usize, tile: usize) -> String {
+        format!(
+            r#"{{"name": "sim", "system": {{"kind": "henon-heiles", "energy": 0.125}},
+               "grid": {{"cells": [{cells}, {cells}], "tile": [{tile}, {tile}], "mode": "fast-pss"}},
+               "sweep": {{"method": ["tm-sbab2c"], "tau": [0.5], "t_final": [1000.0]}}}}"#
+        )
+    }
+
+    /// Fixed costs, so that nothing measured enters the schedule.
+    fn fixed(lanes: Option<usize>, rtt_ns: u64) -> Params {
+        Params {
+            lanes,
+            rtt_ns,
+            step_ns: Some(25.0),
+            coordinator_ns: Some(20_000),
+            ..Params::default()
+        }
+    }
+
+    #[test]
+    fn a_fixed_seed_gives_the_same_schedule() {
+        let text = spec(40, 8);
+        let mut a = Simulation::new(&text, fixed(None, 500_000)).unwrap();
+        let mut b = Simulation::new(&text, fixed(None, 500_000)).unwrap();
+        // Everything but the scheduler's CPU time, which is measured (and not used here).
+        let schedule = |mut s: RunStats| {
+            s.coordinator_cpu_s = 0.0;
+            format!("{s:?}")
+        };
+        for w in [1, 3] {
+            let (x, y) = (a.run(w).unwrap(), b.run(w).unwrap());
+            assert_eq!(schedule(x.clone()), schedule(y), "{w} workers");
+            assert!(x.steps > 0 && x.wall_s > 0.0);
+        }
+        // Another seed jitters the latencies otherwise.
+        let mut c = Simulation::new(
+            &text,
+            Params {
+                seed: 7,
+                ..fixed(None, 500_000)
+            },
+        )
+        .unwrap();
+        let (x, z) = (a.run(3).unwrap(), c.run(3).unwrap());
+        assert_ne!(x.wall_s, z.wall_s);
+    }
+
+    /// One worker with one lane starts an orbit only when the previous one ended and was
+    /// committed, so it integrates exactly the orbits the sequential rule does.
+    #[test]
+    fn one_worker_with_one_lane_integrates_the_sequential_rules_orbits() {
+        let mut sim = Simulation::new(&spec(40, 8), fixed(Some(1), 0)).unwrap();
+        let one = sim.run(1).unwrap();
+        let sequential = sim.sequential();
+        assert!(sequential.orbits > 20, "{sequential:?}");
+        assert_eq!(one.orbits_finished, sequential.orbits);
+        assert_eq!(one.orbits_abandoned, 0);
+        assert_eq!(one.steps, sequential.steps);
+        assert_eq!(one.outcomes, sequential.orbits);
+    }
+
+    /// Lanes and workers speculate: more orbits start than the sequential rule needs, and
+    /// latency costs time.
+    #[test]
+    fn speculation_and_latency_show() {
+        let mut near = Simulation::new(&spec(40, 8), fixed(None, 0)).unwrap();
+        let mut far = Simulation::new(&spec(40, 8), fixed(None, 20_000_000)).unwrap();
+        let sequential = near.sequential();
+        let (a, b) = (near.run(4).unwrap(), far.run(4).unwrap());
+        assert!(a.steps > sequential.steps, "{a:?} {sequential:?}");
+        assert!(b.wall_s > 2.0 * a.wall_s, "{a:?} {b:?}");
+    }
+
+    #[test]
+    fn bad_parameters_are_refused() {
+        let bad = |p: Params| Simulation::new(&spec(20, 10), p).err().unwrap();
+        assert!(bad(Params {
+            threads: 0,
+            ..fixed(None, 0)
+        })
+        .contains("threads"));
+        assert!(bad(Params {
+            lanes: Some(0),
+            ..fixed(None, 0)
+        })
+        .contains("lanes"));
+        assert!(Simulation::new("{}", fixed(None, 0)).is_err());
+        let mut sim = Simulation::new(&spec(20, 10), fixed(None, 0)).unwrap();
+        assert!(sim.run(0).unwrap_err().contains("workers"));
+    }
+}
