@@ -256,7 +256,7 @@ fn the_checks_find_what_is_wrong() {
     let mut help = Help(HashMap::new());
     assert!(salient_problem(&["run", "SPEC", "--threads", "2"], &mut help).is_none());
     assert!(salient_problem(&["run", "SPEC", "--thread", "2"], &mut help).is_some());
-    assert!(salient_problem(&["simulate"], &mut help).is_some());
+    assert!(salient_problem(&["forecast"], &mut help).is_some());
     assert!(script_problem(&["scripts/soak.sh", "--seed", "1"]).is_none());
     assert!(script_problem(&["scripts/soak.sh", "--sed", "1"]).is_some());
     assert!(script_problem(&["scripts/nothing.sh"]).is_some());

@@ -14,4 +14,5 @@ mod plain_c_cli;
 mod precision_cli;
 mod readme_cli;
 mod run_cli;
+mod simulate_cli;
 mod soak_cli;

@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 #[derive(Args, Debug)]
+#[command(allow_negative_numbers = true)]
 pub struct SimulateArgs {
     /// The job spec (TOML or JSON), as `salient submit` takes it.
     spec: PathBuf,
@@ -50,6 +51,17 @@ pub struct SimulateArgs {
     /// on each poll, measured as it runs).
     #[arg(long = "coordinator-us")]
     coordinator_us: Option<f64>,
+    /// CPU microseconds the coordinator's gRPC stack and store spend on a poll besides the
+    /// scheduler (default: measured on loopback, see docs/distributed.md).
+    #[arg(long = "coordinator-stack-us", default_value_t = salient_sim::COORDINATOR_STACK_NS as f64 / 1e3)]
+    coordinator_stack_us: f64,
+    /// CPU microseconds a worker's network side spends on a poll round.
+    #[arg(long = "worker-stack-us", default_value_t = salient_sim::WORKER_STACK_NS as f64 / 1e3)]
+    worker_stack_us: f64,
+    /// Put the coordinator and every worker on one host of this many cores (as on loopback);
+    /// default: each busy thread has a core of its own.
+    #[arg(long = "host-cores")]
+    host_cores: Option<f64>,
     /// Write simulate.md, simulate.csv, simulate.json and speedup.png here.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -117,6 +129,23 @@ fn params(args: &SimulateArgs) -> CliResult<Params> {
             args.coordinator_us
         ));
     }
+    for (flag, v) in [
+        ("--coordinator-stack-us", args.coordinator_stack_us),
+        ("--worker-stack-us", args.worker_stack_us),
+    ] {
+        if !(v.is_finite() && (0.0..=1e6).contains(&v)) {
+            return usage(format!("{flag} must be in 0..=1000000 (got {v})"));
+        }
+    }
+    if args
+        .host_cores
+        .is_some_and(|c| !(c.is_finite() && (1.0..=4096.0).contains(&c)))
+    {
+        return usage(format!(
+            "--host-cores must be in 1..=4096 (got {:?})",
+            args.host_cores
+        ));
+    }
     let config = Config {
         poll: Duration::from_millis(args.poll_ms),
         lease_cells_per_thread: args.lease_cells,
@@ -132,6 +161,9 @@ fn params(args: &SimulateArgs) -> CliResult<Params> {
         config,
         step_ns: args.step_ns,
         coordinator_ns: args.coordinator_us.map(|us| (us * 1e3) as u64),
+        coordinator_stack_ns: (args.coordinator_stack_us * 1e3) as u64,
+        worker_stack_ns: (args.worker_stack_us * 1e3) as u64,
+        host_cores: args.host_cores,
         ..Params::default()
     })
 }
@@ -181,6 +213,9 @@ pub fn simulate(args: SimulateArgs) -> CliResult<()> {
         "poll_ms": args.poll_ms,
         "lease_cells": args.lease_cells,
         "coordinator_us": args.coordinator_us,
+        "coordinator_stack_us": args.coordinator_stack_us,
+        "worker_stack_us": args.worker_stack_us,
+        "host_cores": args.host_cores,
         "traced_orbits": sim.traced(),
         "sequential": sim.sequential(),
         "points": points,

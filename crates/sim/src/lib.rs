@@ -52,9 +52,27 @@ pub struct Params {
     /// Nanoseconds the coordinator takes per poll; `None`: the CPU time the scheduler really
     /// takes (then the simulated times vary from run to run by the measurement's noise).
     pub coordinator_ns: Option<u64>,
+    /// CPU nanoseconds the coordinator's network stack and store spend on a poll besides the
+    /// scheduler (half on the way in, half on the way out); threads of their own, so polls
+    /// pass through it side by side.
+    pub coordinator_stack_ns: u64,
+    /// CPU nanoseconds a worker's network side spends on a poll round (reading the reply,
+    /// handing leases and relays over) before its lanes see the reply.
+    pub worker_stack_ns: u64,
+    /// Cores shared by the coordinator and every worker (all on one host), or `None`: every
+    /// busy thread has a core of its own.
+    pub host_cores: Option<f64>,
     /// Virtual seconds without a new outcome after which the simulation reports a stall.
     pub stall_s: f64,
 }
+
+/// Default of [`Params::coordinator_stack_ns`]: measured on the project's 2-core EPYC host,
+/// the coordinator's gRPC runtime and store threads' CPU over a fast-PSS job's polls
+/// (docs/distributed.md).
+pub const COORDINATOR_STACK_NS: u64 = 430_000;
+
+/// Default of [`Params::worker_stack_ns`], measured with it.
+pub const WORKER_STACK_NS: u64 = 250_000;
 
 impl Default for Params {
     fn default() -> Self {
@@ -69,6 +87,9 @@ impl Default for Params {
             max_leases: 2,
             step_ns: None,
             coordinator_ns: None,
+            coordinator_stack_ns: COORDINATOR_STACK_NS,
+            worker_stack_ns: WORKER_STACK_NS,
+            host_cores: None,
             stall_s: 600.0,
         }
     }
@@ -232,7 +253,12 @@ impl Simulation {
                 .submit(&self.spec_json)
                 .map_err(|e| e.message().to_string())?;
             let traces = std::mem::take(&mut self.traces);
-            let mut world = World::new(self.grid.clone(), traces, self.params.seed);
+            let mut world = World::new(
+                self.grid.clone(),
+                traces,
+                self.params.seed,
+                self.params.host_cores,
+            );
             let result = self.drive(&mut scheduler, job, workers, &mut world);
             self.traces = std::mem::take(&mut world.traces);
             result
@@ -280,6 +306,7 @@ impl Simulation {
             waiting: VecDeque::new(),
             busy: false,
             first_lease_ns: None,
+            finishing: false,
             finished_ns: None,
             last_outcome_ns: 0,
             stats: RunStats {
@@ -288,6 +315,7 @@ impl Simulation {
             },
         };
         let stall_ns = (self.params.stall_s * 1e9) as u64;
+        let stack_half = self.params.coordinator_stack_ns as f64 / 2.0;
         while let Some(event) = world.pop() {
             match event {
                 Event::Send { worker, gen } => {
@@ -302,14 +330,21 @@ impl Simulation {
                     world.at(at, Event::Arrive { worker });
                 }
                 Event::Arrive { worker } => {
+                    world.add_busy(1);
+                    world.after_cpu(stack_half, Event::Received { worker });
+                }
+                Event::Received { worker } => {
+                    world.add_busy(-1);
                     coordinator.waiting.push_back(worker);
                     if !coordinator.busy {
                         self.serve(scheduler, job, &mut coordinator, world)?;
                     }
                 }
-                Event::Served => {
+                Event::Served { worker } => {
+                    world.add_busy(-1);
                     coordinator.busy = false;
-                    if coordinator.finished_ns.is_some() {
+                    if coordinator.finishing {
+                        coordinator.finished_ns = Some(world.now);
                         break;
                     }
                     if world.now - coordinator.last_outcome_ns > stall_ns {
@@ -320,11 +355,24 @@ impl Simulation {
                             world.now as f64 * 1e-9
                         ));
                     }
+                    world.add_busy(1);
+                    world.after_cpu(stack_half, Event::Sent { worker });
                     if !coordinator.waiting.is_empty() {
                         self.serve(scheduler, job, &mut coordinator, world)?;
                     }
                 }
+                Event::Sent { worker } => {
+                    world.add_busy(-1);
+                    let bytes = coordinator.replies[worker].as_ref().map_or(0, Vec::len);
+                    let at = world.now + self.latency(world, bytes);
+                    world.at(at, Event::Reply { worker });
+                }
                 Event::Reply { worker } => {
+                    world.add_busy(1);
+                    world.after_cpu(self.params.worker_stack_ns as f64, Event::Read { worker });
+                }
+                Event::Read { worker } => {
+                    world.add_busy(-1);
                     let bytes = coordinator.replies[worker].take().expect("a reply");
                     let reply = v1::PollReply::decode(&bytes[..]).map_err(|e| e.to_string())?;
                     ws[worker].on_reply(world, reply)?;
@@ -397,19 +445,17 @@ impl Simulation {
         if c.first_lease_ns.is_none() && !reply.leases.is_empty() {
             c.first_lease_ns = Some(world.now);
         }
-        let done_at = world.now + service;
-        if c.finished_ns.is_none()
+        if !c.finishing
             && scheduler
                 .is_finished(job)
                 .map_err(|e| e.message().to_string())?
         {
-            c.finished_ns = Some(done_at);
+            c.finishing = true;
         }
         c.busy = true;
-        world.at(done_at, Event::Served);
-        let at = done_at + self.latency(world, out.len());
         c.replies[worker] = Some(out);
-        world.at(at, Event::Reply { worker });
+        world.add_busy(1);
+        world.after_cpu(service as f64, Event::Served { worker });
         Ok(())
     }
 
@@ -454,6 +500,8 @@ struct Coordinator {
     waiting: VecDeque<usize>,
     busy: bool,
     first_lease_ns: Option<u64>,
+    /// The poll being answered committed the job's last outcome.
+    finishing: bool,
     finished_ns: Option<u64>,
     last_outcome_ns: u64,
     stats: RunStats,

@@ -74,7 +74,8 @@ struct Running {
     cell: u32,
     run: u32,
     lease: LeaseKey,
-    start_ns: u64,
+    /// The CPU clock when it started (its thread's lanes advance on the CPU clock).
+    start_cpu: f64,
     trace: Arc<OrbitTrace>,
     /// The next crossing of `trace` to replay.
     next: usize,
@@ -121,6 +122,8 @@ pub struct SimWorker {
     pub in_flight: bool,
     wake_pending: bool,
     pub timer_gen: u64,
+    /// Compute threads with an orbit running, as counted in the world's busy threads.
+    busy_threads: usize,
     pub totals: WorkerTotals,
 }
 
@@ -149,12 +152,25 @@ impl SimWorker {
             in_flight: false,
             wake_pending: false,
             timer_gen: 0,
+            busy_threads: 0,
             totals: WorkerTotals::default(),
         }
     }
 
     fn lanes(&self) -> usize {
         self.shape.threads * self.shape.lanes
+    }
+
+    /// Tells the world how many of this worker's compute threads are busy: those whose lanes
+    /// hold the running orbits, filled one thread at a time.
+    fn count_busy(&mut self, world: &mut World) {
+        let busy = self
+            .running
+            .len()
+            .div_ceil(self.shape.lanes)
+            .min(self.shape.threads);
+        world.add_busy(busy as isize - self.busy_threads as isize);
+        self.busy_threads = busy;
     }
 
     /// Leases to ask for, as the worker's `free_slots`.
@@ -369,14 +385,14 @@ impl SimWorker {
         if !claims.stream_cancels(&world.grid, r.cell, r.insisted) {
             return;
         }
-        let done = ((world.now - r.start_ns) as f64 / self.shape.lane_step_ns) as u64;
+        let done = ((world.cpu_now - r.start_cpu) / self.shape.lane_step_ns) as u64;
         let boundary = (done / self.shape.poll_steps + 1) * self.shape.poll_steps;
         if boundary >= r.trace.outcome.steps {
             return; // it ends before its next check
         }
-        let at = r.start_ns + (boundary as f64 * self.shape.lane_step_ns).ceil() as u64;
+        let at = r.start_cpu + boundary as f64 * self.shape.lane_step_ns;
         self.running.get_mut(&id).expect("running").abandoning = true;
-        world.at(
+        world.at_cpu(
             at,
             Event::Abandon {
                 worker: self.index,
@@ -501,7 +517,7 @@ impl SimWorker {
                 cell: entry.cell,
                 run,
                 lease: entry.lease,
-                start_ns: world.now,
+                start_cpu: world.cpu_now,
                 trace,
                 next: 0,
                 insisted,
@@ -510,12 +526,13 @@ impl SimWorker {
             },
         );
         self.schedule_next(world, id);
+        self.count_busy(world);
     }
 
     /// The orbit's next event: its next crossing, or its end.
     fn schedule_next(&mut self, world: &mut World, id: u64) {
         let r = &self.running[&id];
-        let at_step = |s: u64| r.start_ns + (s as f64 * self.shape.lane_step_ns).ceil() as u64;
+        let at_step = |s: u64| r.start_cpu + s as f64 * self.shape.lane_step_ns;
         let event = match r.trace.crossings.get(r.next) {
             Some(&(_, step)) => (
                 at_step(step),
@@ -532,7 +549,7 @@ impl SimWorker {
                 },
             ),
         };
-        world.at(event.0, event.1);
+        world.at_cpu(event.0, event.1);
     }
 
     pub fn on_crossing(&mut self, world: &mut World, id: u64) {
@@ -568,6 +585,7 @@ impl SimWorker {
             state.local.claims().set_running(r.cell, false);
             state.local.offer(outcome.clone());
         }
+        self.count_busy(world);
         self.totals.orbits_finished += 1;
         self.totals.steps += steps;
         self.end_entry(world, r.lease, Some(outcome), steps);
@@ -588,11 +606,12 @@ impl SimWorker {
             return;
         }
         let r = self.running.remove(&id).expect("running");
-        let steps = (((world.now - r.start_ns) as f64 / self.shape.lane_step_ns).round() as u64)
+        let steps = (((world.cpu_now - r.start_cpu) / self.shape.lane_step_ns).round() as u64)
             .min(r.trace.outcome.steps);
         if let Some(state) = self.runs.get(&r.run) {
             state.local.claims().set_running(r.cell, false);
         }
+        self.count_busy(world);
         self.totals.orbits_abandoned += 1;
         self.totals.steps += steps;
         self.end_entry(world, r.lease, None, steps);

@@ -1,4 +1,12 @@
-//! Virtual time: the queue of what happens next, and what every simulated party shares.
+//! Virtual time: the queues of what happens next, and what every simulated party shares.
+//!
+//! Two clocks: the wall clock, and a CPU clock that measures the CPU time one busy thread has
+//! had since the start. Messages in transit and timers wait on the wall clock; computing (a
+//! lane's steps, the coordinator's answer, the work of each side's network stack) waits on
+//! the CPU clock. With a core per busy thread the two run together; on a host of `cores`
+//! shared by more busy threads (the coordinator and workers on one machine), the CPU clock
+//! runs at cores / busy threads of the wall's speed: every busy thread gets an equal share,
+//! as the kernel's fair scheduler gives it.
 
 use crate::traces::Traces;
 use salient_grid::Grid;
@@ -12,10 +20,16 @@ pub enum Event {
     Send { worker: usize, gen: u64 },
     /// A poll reaches the coordinator.
     Arrive { worker: usize },
-    /// The coordinator finished answering a poll.
-    Served,
-    /// The coordinator's reply reaches the worker.
+    /// A poll passed the coordinator's network stack and waits for the scheduler.
+    Received { worker: usize },
+    /// The scheduler finished answering a worker's poll.
+    Served { worker: usize },
+    /// The reply passed the coordinator's network stack and leaves.
+    Sent { worker: usize },
+    /// The coordinator's reply reaches the worker's host.
     Reply { worker: usize },
+    /// The worker's network side has read the reply.
+    Read { worker: usize },
     /// A running orbit crosses its next cell.
     Crossing { worker: usize, orbit: u64 },
     /// A running orbit reaches its end.
@@ -27,39 +41,103 @@ pub enum Event {
 }
 
 pub struct World {
-    /// Virtual nanoseconds since the workers started.
+    /// Wall nanoseconds since the workers started.
     pub now: u64,
-    queue: BinaryHeap<Reverse<(u64, u64, Event)>>,
+    /// The CPU clock, in nanoseconds (see the module's documentation).
+    pub cpu_now: f64,
+    wall_queue: BinaryHeap<Reverse<(u64, u64, Event)>>,
+    cpu_queue: BinaryHeap<Reverse<(u64, u64, Event)>>,
     /// Orders events of the same moment by when they were scheduled.
     seq: u64,
     pub traces: Vec<Traces>,
     pub grid: Grid,
     rng: u64,
+    /// Cores shared by every party, or `None`: each busy thread has a core of its own.
+    cores: Option<f64>,
+    /// Threads busy now.
+    busy: usize,
 }
 
 impl World {
-    pub fn new(grid: Grid, traces: Vec<Traces>, seed: u64) -> Self {
+    pub fn new(grid: Grid, traces: Vec<Traces>, seed: u64, cores: Option<f64>) -> Self {
         World {
             now: 0,
-            queue: BinaryHeap::new(),
+            cpu_now: 0.0,
+            wall_queue: BinaryHeap::new(),
+            cpu_queue: BinaryHeap::new(),
             seq: 0,
             traces,
             grid,
             rng: seed,
+            cores,
+            busy: 0,
         }
     }
 
-    /// Schedules `event` at `time` (never before now).
+    /// Schedules `event` at wall time `time` (never before now).
     pub fn at(&mut self, time: u64, event: Event) {
         self.seq += 1;
-        self.queue
+        self.wall_queue
             .push(Reverse((time.max(self.now), self.seq, event)));
     }
 
-    /// The next event, with the clock moved to it.
+    /// Schedules `event` at CPU time `cpu` (never before now).
+    pub fn at_cpu(&mut self, cpu: f64, event: Event) {
+        self.seq += 1;
+        let key = cpu.max(self.cpu_now).ceil() as u64;
+        self.cpu_queue.push(Reverse((key, self.seq, event)));
+    }
+
+    /// Schedules `event` once a thread busy from now has had `work_ns` of CPU.
+    pub fn after_cpu(&mut self, work_ns: f64, event: Event) {
+        self.at_cpu(self.cpu_now + work_ns, event);
+    }
+
+    /// A thread starts (`+1`) or stops (`-1`) being busy.
+    pub fn add_busy(&mut self, delta: isize) {
+        self.busy = self.busy.saturating_add_signed(delta);
+    }
+
+    /// CPU nanoseconds a busy thread gets per wall nanosecond now.
+    fn rate(&self) -> f64 {
+        match self.cores {
+            Some(cores) if self.busy as f64 > cores => cores / self.busy as f64,
+            _ => 1.0,
+        }
+    }
+
+    /// The next event, with both clocks moved to it.
     pub fn pop(&mut self) -> Option<Event> {
-        let Reverse((time, _, event)) = self.queue.pop()?;
-        self.now = time;
+        let wall = self
+            .wall_queue
+            .peek()
+            .map(|Reverse((t, s, _))| (*t as f64, *s));
+        let rate = self.rate();
+        let cpu = self.cpu_queue.peek().map(|Reverse((c, s, _))| {
+            let wait = (*c as f64 - self.cpu_now).max(0.0) / rate;
+            (self.now as f64 + wait, *s, *c as f64)
+        });
+        let (time, event, cpu_key) = match (wall, cpu) {
+            (None, None) => return None,
+            (Some((t, _)), Some((tc, _, _))) if t <= tc => {
+                let Reverse((_, _, e)) = self.wall_queue.pop().expect("peeked");
+                (t, e, None)
+            }
+            (Some((t, _)), None) => {
+                let Reverse((_, _, e)) = self.wall_queue.pop().expect("peeked");
+                (t, e, None)
+            }
+            (_, Some((tc, _, c))) => {
+                let Reverse((_, _, e)) = self.cpu_queue.pop().expect("peeked");
+                (tc, e, Some(c))
+            }
+        };
+        let time = time.max(self.now as f64);
+        self.cpu_now += (time - self.now as f64) * rate;
+        if let Some(c) = cpu_key {
+            self.cpu_now = self.cpu_now.max(c);
+        }
+        self.now = time.round() as u64;
         Some(event)
     }
 

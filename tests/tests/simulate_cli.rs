@@ -1,0 +1,193 @@
+//! `salient simulate`: its outputs and refusals, and its predictions against real coordinator
+//! and worker processes on loopback.
+
+use salient_tests::cluster::{client, coordinator_with, wait_results, worker, Proc};
+use salient_tests::{json_stdout, salient, write_spec};
+use std::path::Path;
+
+/// A fast-PSS grid of a few tenths of a second on one worker.
+const SPEC: &str = r#"
+name = "scaling"
+[system]
+kind = "henon-heiles"
+energy = 0.125
+[grid]
+cells = [160, 160]
+tile = [20, 20]
+mode = "fast-pss"
+[sweep]
+method = ["tm-sbab2c"]
+tau = [0.5]
+t_final = [1e4]
+"#;
+
+#[test]
+fn simulate_writes_its_table_and_plot_and_refuses_bad_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = write_spec(dir.path(), "s.toml", &SPEC.replace("160", "40"));
+    let out = dir.path().join("sim");
+    let summary = json_stdout(&salient(&[
+        "simulate",
+        &spec,
+        "--workers",
+        "1,3",
+        "--step-ns",
+        "25",
+        "--coordinator-us",
+        "20",
+        "--json",
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    let points = summary["points"].as_array().unwrap();
+    assert_eq!(points.len(), 2);
+    assert_eq!(points[0]["workers"], 1);
+    assert_eq!(points[0]["speedup"], 1.0);
+    assert!(points[1]["wall_s"].as_f64().unwrap() > 0.0);
+    assert!(summary["sequential"]["orbits"].as_u64().unwrap() > 0);
+    for f in [
+        "simulate.md",
+        "simulate.csv",
+        "simulate.json",
+        "speedup.png",
+    ] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    for (flag, value) in [
+        ("--workers", "0"),
+        ("--threads", "0"),
+        ("--rtt-ms", "-1"),
+        ("--jitter", "1.5"),
+        ("--poll-ms", "1"),
+        ("--step-ns", "0"),
+    ] {
+        let o = salient(&["simulate", &spec, flag, value]);
+        assert_eq!(o.status.code(), Some(2), "{flag} {value}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(flag), "{flag}: {err}");
+    }
+}
+
+/// Wall seconds and integrated steps of `runs` jobs of `spec` on a cluster of `workers`
+/// single-thread workers, each as the coordinator's run table gives them: the medians.
+fn real_runs(dir: &Path, spec: &str, workers: usize, runs: usize) -> (f64, f64) {
+    let d = dir.join(format!("real-{workers}"));
+    std::fs::create_dir_all(&d).unwrap();
+    let (_c, url) = coordinator_with(
+        &d,
+        "127.0.0.1:0",
+        "coordinator.log",
+        &["--lease-cells-per-thread", LEASE_CELLS],
+    );
+    let _w: Vec<Proc> = (1..=workers).map(|n| worker(&d, &url, n)).collect();
+    let (mut walls, mut steps) = (Vec::new(), Vec::new());
+    for k in 0..runs {
+        let job = json_stdout(&client(&["submit", spec, "--json"], &url))["job"]
+            .as_u64()
+            .unwrap();
+        let out = d.join(format!("out-{k}"));
+        let results = wait_results(&url, job, &out);
+        let run = &results["runs"][0];
+        walls.push(run["wall_s"].as_f64().unwrap());
+        steps.push(run["steps_total"].as_f64().unwrap());
+    }
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    (median(walls), median(steps))
+}
+
+/// The simulator's wall and steps for 1 and 2 workers with `extra` flags, and the sequential
+/// rule's steps.
+fn simulated(spec: &str, extra: &[&str]) -> (Vec<(f64, f64)>, f64) {
+    let mut args = vec![
+        "simulate",
+        spec,
+        "--workers",
+        "1,2",
+        "--lease-cells",
+        LEASE_CELLS,
+        "--json",
+    ];
+    args.extend_from_slice(extra);
+    let summary = json_stdout(&salient(&args));
+    let points = summary["points"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| (p["wall_s"].as_f64().unwrap(), p["steps"].as_f64().unwrap()))
+        .collect();
+    (points, summary["sequential"]["steps"].as_f64().unwrap())
+}
+
+/// Small leases: many round trips per cell, so that latency shows in the wall.
+const LEASE_CELLS: &str = "2";
+
+/// Whether a prediction's wall is within a factor of [`WALL_FACTOR`] of the real one (the
+/// other tests share the cores meanwhile).
+fn wall_agrees(predicted: f64, real: f64) -> bool {
+    (1.0 / WALL_FACTOR..=WALL_FACTOR).contains(&(predicted / real))
+}
+
+fn steps_agree(predicted: f64, real: f64) -> bool {
+    (predicted / real - 1.0).abs() <= STEPS_SHARE
+}
+
+const WALL_FACTOR: f64 = 1.6;
+const STEPS_SHARE: f64 = 0.15;
+
+/// The simulator's prediction for one and two single-thread workers agrees with real
+/// processes on loopback, where a simulator without latency (no round trips, free network
+/// stacks and scheduler) or without speculation (the sequential rule's steps) would not.
+#[test]
+fn the_simulator_predicts_loopback_runs_of_one_and_two_workers() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = write_spec(dir.path(), "s.toml", SPEC);
+    let real: Vec<(f64, f64)> = (1..=2)
+        .map(|w| real_runs(dir.path(), &spec, w, 3))
+        .collect();
+    // Everything on this host's cores, as the real processes are.
+    let cores = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .to_string();
+    let (predicted, sequential) = simulated(
+        &spec,
+        &["--rtt-ms", LOOPBACK_RTT_MS, "--host-cores", &cores],
+    );
+    let (no_latency, _) = simulated(
+        &spec,
+        &[
+            "--rtt-ms",
+            "0",
+            "--coordinator-us",
+            "0",
+            "--coordinator-stack-us",
+            "0",
+            "--worker-stack-us",
+            "0",
+            "--host-cores",
+            &cores,
+        ],
+    );
+    for w in 0..2 {
+        let (p, r) = (predicted[w], real[w]);
+        assert!(
+            wall_agrees(p.0, r.0) && steps_agree(p.1, r.1),
+            "{} worker(s): simulated (wall s, steps) {p:?}, real {r:?}",
+            w + 1
+        );
+        assert!(
+            !steps_agree(sequential, r.1),
+            "{} worker(s): the sequential rule's {sequential} steps are close to the real {r:?}",
+            w + 1
+        );
+    }
+    assert!(
+        !(wall_agrees(no_latency[0].0, real[0].0) && wall_agrees(no_latency[1].0, real[1].0)),
+        "a simulation without latency agrees too: {no_latency:?} against {real:?}"
+    );
+}
+
+/// Transit of a message and back on loopback (the stacks' CPU is simulated apart).
+const LOOPBACK_RTT_MS: &str = "0.05";
