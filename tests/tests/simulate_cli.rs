@@ -60,6 +60,8 @@ fn simulate_writes_its_table_and_plot_and_refuses_bad_flags() {
         ("--jitter", "1.5"),
         ("--poll-ms", "1"),
         ("--step-ns", "0"),
+        ("--forecast", "pilot:-1"),
+        ("--host-cores", "0"),
     ] {
         let o = salient(&["simulate", &spec, flag, value]);
         assert_eq!(o.status.code(), Some(2), "{flag} {value}");

@@ -7,7 +7,7 @@ use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
 use salient_coordinator::scheduler::Config;
 use salient_report::{render_loglog_png, Line, LogLogPlot, Table};
-use salient_sim::{Params, Point, Simulation};
+use salient_sim::{ForecastSource, Params, Point, Simulation};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -62,6 +62,10 @@ pub struct SimulateArgs {
     /// default: each busy thread has a core of its own.
     #[arg(long = "host-cores")]
     host_cores: Option<f64>,
+    /// The coordinator's forecast of who labels each cell: none, perfect (the job's own
+    /// labellers: the best a forecast can do) or pilot:T (a pilot run to t_final = T).
+    #[arg(long, default_value = "none")]
+    forecast: String,
     /// Write simulate.md, simulate.csv, simulate.json and speedup.png here.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -146,6 +150,18 @@ fn params(args: &SimulateArgs) -> CliResult<Params> {
             args.host_cores
         ));
     }
+    let forecast = match args.forecast.as_str() {
+        "none" => ForecastSource::None,
+        "perfect" => ForecastSource::Perfect,
+        f => match f.strip_prefix("pilot:").map(str::parse::<f64>) {
+            Some(Ok(t)) if t.is_finite() && t > 0.0 => ForecastSource::Pilot(t),
+            _ => {
+                return usage(format!(
+                    "--forecast must be none, perfect or pilot:T with T > 0 (got {f:?})"
+                ))
+            }
+        },
+    };
     let config = Config {
         poll: Duration::from_millis(args.poll_ms),
         lease_cells_per_thread: args.lease_cells,
@@ -164,6 +180,7 @@ fn params(args: &SimulateArgs) -> CliResult<Params> {
         coordinator_stack_ns: (args.coordinator_stack_us * 1e3) as u64,
         worker_stack_ns: (args.worker_stack_us * 1e3) as u64,
         host_cores: args.host_cores,
+        forecast,
         ..Params::default()
     })
 }
@@ -216,6 +233,7 @@ pub fn simulate(args: SimulateArgs) -> CliResult<()> {
         "coordinator_stack_us": args.coordinator_stack_us,
         "worker_stack_us": args.worker_stack_us,
         "host_cores": args.host_cores,
+        "forecast": args.forecast,
         "traced_orbits": sim.traced(),
         "sequential": sim.sequential(),
         "points": points,

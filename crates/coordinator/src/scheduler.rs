@@ -8,7 +8,7 @@ use crate::writer::{Deferred, StoreThread, Write};
 use prost::bytes::Bytes;
 use prost::Message;
 use salient_grid::spec::{self, JobSpec};
-use salient_grid::{Grid, Ledger};
+use salient_grid::{Forecast, Grid, Ledger};
 use salient_proto::v1;
 use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
 use salient_store::{JobState, Store, StoreError};
@@ -174,6 +174,10 @@ struct Run {
     /// report must still change nothing).
     stored: Vec<bool>,
     checkpoints: usize,
+    /// Who is forecast to label each cell (a similar finished run): cells forecast to be
+    /// labelled by an orbit not yet committed are leased only once that orbit is, and the
+    /// others from anywhere in the grid rather than a window past the frontier.
+    forecast: Option<Forecast>,
     /// Orbits a worker thread of an adaptive method runs at once (one, or a few SIMD lanes);
     /// `None` for tangent-map methods, whose threads run a batch of lanes. Fast-PSS leases
     /// are sized by it.
@@ -248,6 +252,7 @@ impl Run {
             stall: Stall::default(),
             relay: Vec::new(),
             stored: vec![false; grid.cells()],
+            forecast: None,
             checkpoints: cell_run.checkpoint_steps().len(),
             adaptive_orbits_per_thread: match &cell_run.run.method {
                 salient_core::Method::TangentMap(_) => None,
@@ -268,12 +273,25 @@ impl Run {
         }
     }
 
-    /// The cells of tile `t` that need their own orbit now.
-    fn wanted(&self, t: usize) -> Vec<u32> {
-        self.grid
+    /// The cells of tile `t` that need their own orbit now, and whether the forecast held
+    /// back others that do.
+    fn wanted(&self, t: usize) -> (Vec<u32>, bool) {
+        let frontier = self.ledger.frontier();
+        let mut deferred = false;
+        let cells = self
+            .grid
             .tile_compatible_cells(t)
             .filter(|&c| self.ledger.wants(c))
-            .collect()
+            .filter(|&c| {
+                let defers = self
+                    .forecast
+                    .as_ref()
+                    .is_some_and(|f| f.defers(c, frontier));
+                deferred |= defers;
+                !defers
+            })
+            .collect();
+        (cells, deferred)
     }
 
     /// Watches progress as a lease of tile `key.2` finishes (`brought`: it carried a new
@@ -452,6 +470,23 @@ impl Scheduler {
             stale_reports: counters.get("stale_reports").copied().unwrap_or(0),
             error: row.error,
         })
+    }
+
+    /// Gives run `run` of job `job` a forecast of its labellers (see `Run::forecast`); one made
+    /// on a grid of another size is refused.
+    pub fn set_forecast(&mut self, job: u64, run: usize, forecast: Forecast) -> Result<(), Status> {
+        let r = self
+            .jobs
+            .get_mut(&job)
+            .and_then(|j| j.runs.get_mut(run))
+            .ok_or_else(|| Status::not_found(format!("no run {run} of job {job}")))?;
+        if !forecast.fits(r.grid.cells()) {
+            return Err(Status::invalid_argument(
+                "the forecast was made on a grid of another size",
+            ));
+        }
+        r.forecast = Some(forecast);
+        Ok(())
     }
 
     /// Validates a spec and queues it; returns the job id and the spec's warnings.
@@ -791,7 +826,11 @@ impl Scheduler {
                 // leases themselves. (Later runs of the job are scanned next: their frontier
                 // is certain work.)
                 let ahead = (WINDOW_TILES_PER_WORKER * workers.max(1)).max(WINDOW_TILES_MIN);
-                let last = (first + 1 + ahead).min(run.tiles.len());
+                let last = if run.forecast.is_some() {
+                    run.tiles.len()
+                } else {
+                    (first + 1 + ahead).min(run.tiles.len())
+                };
                 let reopenings = run.ledger.reopenings();
                 for t in first..last {
                     let tile = &run.tiles[t];
@@ -801,11 +840,14 @@ impl Scheduler {
                     {
                         continue;
                     }
-                    let cells = run.wanted(t);
+                    let (cells, deferred) = run.wanted(t);
                     if !cells.is_empty() {
                         return Some(((job.id, r as u32, t as u32), cells));
                     }
-                    run.tiles[t].drained_at = Some(reopenings);
+                    // Deferred cells come back as the frontier passes their labellers.
+                    if !deferred {
+                        run.tiles[t].drained_at = Some(reopenings);
+                    }
                 }
             }
         }

@@ -165,6 +165,54 @@ fn simulated_workers_give_the_embedded_labels_in_both_modes() {
     }
 }
 
+/// Orbits dropped per run, from the results stream.
+fn dropped(s: &Scheduler, job: u64) -> Vec<u64> {
+    use v1::results_chunk::Part;
+    s.results(job, 7)
+        .unwrap()
+        .into_iter()
+        .filter_map(|c| match c.part.unwrap() {
+            Part::Run(r) => Some(r.orbits_dropped),
+            _ => None,
+        })
+        .collect()
+}
+
+/// With the labellers of the finished run as its forecast, the scheduler leases only the
+/// cells that need their own orbit (none is dropped), from anywhere in the grid, and the labels
+/// stay the embedded run's; a forecast of another grid is refused.
+#[test]
+fn a_forecast_leases_only_the_cells_that_need_their_own_orbit() {
+    let json = spec_json("fast-pss", r#""tm-sbab2c""#);
+    let spec = spec::parse(&json, true).unwrap();
+    let grid = spec.grid();
+    let finished = run_embedded(&grid, &spec.cell_run(0), spec.grid.mode, 8, |_| {});
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    let (job, _) = s.submit(&json).unwrap();
+    s.set_forecast(job, 0, finished.forecast()).unwrap();
+    let other = spec::parse(&json.replace("[14, 12]", "[10, 10]"), true).unwrap();
+    let small = Ledger::new(&other.grid(), other.grid.mode).forecast();
+    assert_eq!(
+        s.set_forecast(job, 0, small).unwrap_err().code(),
+        Code::InvalidArgument
+    );
+    assert_eq!(
+        s.set_forecast(job, 1, finished.forecast())
+            .unwrap_err()
+            .code(),
+        Code::NotFound
+    );
+    drive(&mut s, job, 3, None);
+    assert_eq!(labels(&s, job), embedded(&json));
+    assert_eq!(dropped(&s, job), vec![0]);
+
+    // Without the forecast the same workers drop speculative orbits.
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    let (job, _) = s.submit(&json).unwrap();
+    drive(&mut s, job, 3, None);
+    assert!(dropped(&s, job)[0] > 0);
+}
+
 #[test]
 fn a_restarted_scheduler_resumes_without_integrating_committed_cells_again() {
     let dir = tempfile::tempdir().unwrap();

@@ -16,7 +16,7 @@ mod world;
 use prost::Message;
 use salient_coordinator::scheduler::{Config, Scheduler};
 use salient_grid::spec::{self, JobSpec};
-use salient_grid::{executor, Grid};
+use salient_grid::{executor, Forecast, Grid, Ledger, Mode};
 use salient_proto::{v1, PROTOCOL_VERSION};
 use salient_store::Store;
 use serde::Serialize;
@@ -26,6 +26,18 @@ pub use traces::{calibrate_step_ns, thread_cpu_ns};
 use tracing::subscriber::NoSubscriber;
 use worker::{Shape, SimWorker, FIRST_POLL_NS};
 use world::{Event, World};
+
+/// Where the coordinator's forecast of each cell's labeller comes from.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ForecastSource {
+    /// No forecast: leases from a window past the frontier.
+    None,
+    /// The labellers of the job's own result: the best any forecast can do.
+    Perfect,
+    /// The labellers of a pilot run of the same grid and method to this t_final (its cost is
+    /// not simulated).
+    Pilot(f64),
+}
 
 /// What is simulated besides the spec.
 #[derive(Clone, Copy, Debug)]
@@ -62,6 +74,8 @@ pub struct Params {
     /// Cores shared by the coordinator and every worker (all on one host), or `None`: every
     /// busy thread has a core of its own.
     pub host_cores: Option<f64>,
+    /// The coordinator's forecast of who labels each cell.
+    pub forecast: ForecastSource,
     /// Virtual seconds without a new outcome after which the simulation reports a stall.
     pub stall_s: f64,
 }
@@ -90,6 +104,7 @@ impl Default for Params {
             coordinator_stack_ns: COORDINATOR_STACK_NS,
             worker_stack_ns: WORKER_STACK_NS,
             host_cores: None,
+            forecast: ForecastSource::None,
             stall_s: 600.0,
         }
     }
@@ -158,6 +173,8 @@ pub struct Simulation {
     traces: Vec<Traces>,
     lanes: usize,
     step_ns: f64,
+    /// Per run, the forecast given to the coordinator (made once).
+    forecasts: Option<Vec<Forecast>>,
 }
 
 impl Simulation {
@@ -198,6 +215,7 @@ impl Simulation {
             traces,
             lanes,
             step_ns,
+            forecasts: None,
         })
     }
 
@@ -218,6 +236,56 @@ impl Simulation {
     /// Virtual nanoseconds a lane takes per step.
     fn lane_step_ns(&self) -> f64 {
         self.step_ns * self.lanes as f64
+    }
+
+    /// The ledger of every run under the sequential rule, from `traces`.
+    fn sequential_ledgers(grid: &Grid, mode: Mode, traces: &mut [Traces]) -> Vec<Ledger> {
+        traces
+            .iter_mut()
+            .map(|t| {
+                let labels =
+                    salient_grid::ledger::sequential(grid, mode, |c| t.get(c).outcome.clone());
+                let mut ledger = Ledger::new(grid, mode);
+                for (cell, label) in labels.iter().enumerate() {
+                    if label.is_some_and(|l| l.source as usize == cell) {
+                        ledger.offer(t.get(cell as u32).outcome.clone());
+                    }
+                }
+                ledger
+            })
+            .collect()
+    }
+
+    /// The forecasts `params.forecast` asks for, made on first use.
+    fn forecasts(&mut self) -> Option<Vec<Forecast>> {
+        if self.forecasts.is_none() {
+            let mode = self.spec.grid.mode;
+            self.forecasts = match self.params.forecast {
+                ForecastSource::None => None,
+                ForecastSource::Perfect => Some(
+                    Self::sequential_ledgers(&self.grid, mode, &mut self.traces)
+                        .iter()
+                        .map(Ledger::forecast)
+                        .collect(),
+                ),
+                ForecastSource::Pilot(t_final) => {
+                    let mut pilots: Vec<Traces> = (0..self.spec.runs.len())
+                        .map(|i| {
+                            let mut run = self.spec.cell_run(i);
+                            run.config.t_final = t_final.min(run.config.t_final);
+                            Traces::new(&self.grid, run, mode)
+                        })
+                        .collect();
+                    Some(
+                        Self::sequential_ledgers(&self.grid, mode, &mut pilots)
+                            .iter()
+                            .map(Ledger::forecast)
+                            .collect(),
+                    )
+                }
+            };
+        }
+        self.forecasts.clone()
     }
 
     /// What the sequential rule integrates, summed over the runs (the longest orbit: of all).
@@ -245,6 +313,7 @@ impl Simulation {
         if workers == 0 {
             return Err("workers must be at least 1".into());
         }
+        let forecasts = self.forecasts();
         // The scheduler's log lines (jobs, leases, runs done) tell of simulated events: not shown.
         tracing::subscriber::with_default(NoSubscriber::default(), || {
             let store = Store::open_in_memory().map_err(|e| e.to_string())?;
@@ -252,6 +321,11 @@ impl Simulation {
             let (job, _) = scheduler
                 .submit(&self.spec_json)
                 .map_err(|e| e.message().to_string())?;
+            for (run, f) in forecasts.into_iter().flatten().enumerate() {
+                scheduler
+                    .set_forecast(job, run, f)
+                    .map_err(|e| e.message().to_string())?;
+            }
             let traces = std::mem::take(&mut self.traces);
             let mut world = World::new(
                 self.grid.clone(),
@@ -583,6 +657,24 @@ mod tests {
         let (a, b) = (near.run(4).unwrap(), far.run(4).unwrap());
         assert!(a.steps > sequential.steps, "{a:?} {sequential:?}");
         assert!(b.wall_s > 2.0 * a.wall_s, "{a:?} {b:?}");
+    }
+
+    /// With the job's own labellers as the coordinator's forecast, four workers integrate
+    /// exactly the sequential rule's orbits, and sooner than one.
+    #[test]
+    fn a_perfect_forecast_leaves_nothing_to_drop() {
+        let params = Params {
+            forecast: ForecastSource::Perfect,
+            ..fixed(None, 500_000)
+        };
+        let mut sim = Simulation::new(&spec(40, 8), params).unwrap();
+        let (one, four) = (sim.run(1).unwrap(), sim.run(4).unwrap());
+        let sequential = sim.sequential();
+        for s in [&one, &four] {
+            assert_eq!(s.steps, sequential.steps, "{s:?}");
+            assert_eq!(s.orbits_abandoned, 0);
+        }
+        assert!(four.wall_s < one.wall_s / 2.0, "{one:?} {four:?}");
     }
 
     #[test]
