@@ -287,7 +287,7 @@ pub fn worker(args: WorkerArgs) -> CliResult<()> {
     }
     let drain = seconds_in("--drain-seconds", args.drain_seconds, 0.0)?;
     // Bad addresses are bad input (exit 2), found before anything starts.
-    salient_worker::endpoint(&args.coordinator, None).map_err(CliError::Usage)?;
+    salient_proto::endpoint(&args.coordinator, None).map_err(CliError::Usage)?;
     let tls_ca = args
         .tls_ca
         .as_ref()

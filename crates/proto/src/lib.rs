@@ -2,13 +2,18 @@
 //! `src/generated/` by `scripts/gen-proto.sh`, so builds need neither `protoc` nor the code
 //! generators) and their conversions to and from `salient_grid` types. The only crate that
 //! names prost types; it holds no logic beyond checking that what came off the wire is well
-//! formed.
+//! formed, and how a client (the CLI, a worker) reaches a coordinator ([`endpoint`], [`Token`],
+//! [`explain_transport`]).
 
 #![allow(clippy::large_enum_variant)]
 
 pub mod v1 {
     include!("generated/salient.v1.rs");
 }
+
+mod connect;
+
+pub use connect::{endpoint, explain_transport, Token};
 
 use salient_core::orbit::{Class, Status};
 use salient_grid::{Grid, Outcome};

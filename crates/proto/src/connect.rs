@@ -1,7 +1,50 @@
-//! Connection failures in words an operator can act on: the whole chain of causes, and for
-//! the usual TLS and address mistakes what to change.
+//! How clients reach a coordinator: the URL checks, TLS, the bearer token on every request;
+//! and connection failures in words an operator can act on — the whole chain of causes, and
+//! for the usual TLS and address mistakes what to change.
 
 use std::error::Error;
+use std::time::Duration;
+use tonic::transport::{Certificate, ClientTlsConfig, Endpoint};
+use tonic::{Request, Status};
+
+/// An endpoint for `url` with TLS when it is https.
+pub fn endpoint(url: &str, tls_ca: Option<&[u8]>) -> Result<Endpoint, String> {
+    if !(url.starts_with("http://") || url.starts_with("https://")) {
+        return Err(format!(
+            "--coordinator must be an http:// or https:// URL (got {url:?})"
+        ));
+    }
+    let mut ep = Endpoint::from_shared(url.to_string())
+        .map_err(|e| format!("--coordinator {url:?} is not a valid URL: {e}"))?
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true);
+    if url.starts_with("https://") {
+        let mut tls = ClientTlsConfig::new().with_webpki_roots();
+        if let Some(ca) = tls_ca {
+            tls = tls.ca_certificate(Certificate::from_pem(ca));
+        }
+        ep = ep
+            .tls_config(tls)
+            .map_err(|e| format!("TLS configuration: {e}"))?;
+    }
+    Ok(ep)
+}
+
+/// Adds `authorization: Bearer <token>` to every request when a token is set.
+#[derive(Clone)]
+pub struct Token(pub Option<String>);
+
+impl tonic::service::Interceptor for Token {
+    fn call(&mut self, mut req: Request<()>) -> Result<Request<()>, Status> {
+        if let Some(t) = &self.0 {
+            let v = format!("Bearer {t}").parse().map_err(|_| {
+                Status::invalid_argument("the token holds characters a header cannot")
+            })?;
+            req.metadata_mut().insert("authorization", v);
+        }
+        Ok(req)
+    }
+}
 
 /// `err` and its causes, joined, followed by a hint when the failure matches a known mistake
 /// (TLS on one side only, a certificate the client does not trust or that names another
