@@ -147,6 +147,23 @@ pub fn outcome_from_wire(
     })
 }
 
+/// Adds `outcome` to the unfinished report of `lease` at the end of `reports`, or starts one
+/// there: the outcomes of a lease still running go out with the next poll, one report per
+/// lease in a row.
+pub fn push_partial(reports: &mut Vec<v1::TileReport>, lease: TileRef, outcome: v1::Outcome) {
+    match reports.last_mut() {
+        Some(r) if r.lease == Some(lease) => r.outcomes.push(outcome),
+        _ => reports.push(v1::TileReport {
+            lease: Some(lease),
+            outcomes: vec![outcome],
+            finished: false,
+            cpu_ns: 0,
+            abandoned_orbits: 0,
+            abandoned_steps: 0,
+        }),
+    }
+}
+
 impl TileRef {
     /// The tile without the attempt: what identifies the lease's work.
     pub fn key(&self) -> (u64, u32, u32) {

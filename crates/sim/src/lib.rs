@@ -353,27 +353,7 @@ impl Simulation {
         workers: usize,
         world: &mut World,
     ) -> Result<RunStats, String> {
-        let shape = Shape {
-            threads: self.params.threads,
-            lanes: self.lanes,
-            lane_step_ns: self.lane_step_ns(),
-            poll_steps: salient_core::batch::poll_interval(self.spec.cell_run(0).config.tau),
-            max_leases: self.params.max_leases,
-            busy_poll_ns: self.params.config.poll.as_nanos() as u64,
-        };
-        let mut ws = Vec::with_capacity(workers);
-        for i in 0..workers {
-            let reg = scheduler
-                .register(&v1::RegisterRequest {
-                    protocol_version: PROTOCOL_VERSION,
-                    name: format!("simulated-{i}"),
-                    threads: self.params.threads as u32,
-                })
-                .map_err(|e| e.message().to_string())?;
-            let mut w = SimWorker::new(i, reg.worker_id, job, shape, self.spec.grid.mode);
-            w.schedule_send(world, FIRST_POLL_NS);
-            ws.push(w);
-        }
+        let mut ws = self.start_workers(scheduler, job, workers, world)?;
         let mut coordinator = Coordinator {
             requests: vec![None; workers],
             replies: vec![None; workers],
@@ -457,18 +437,39 @@ impl Simulation {
                 Event::Force { worker, gen } => ws[worker].on_force(world, gen),
             }
         }
-        let finished = coordinator
-            .finished_ns
-            .ok_or("the simulation ran out of events before the job finished")?;
-        let mut stats = coordinator.stats;
-        stats.wall_s = (finished - coordinator.first_lease_ns.unwrap_or(0)) as f64 * 1e-9;
-        for w in &ws {
-            stats.orbits_finished += w.totals.orbits_finished;
-            stats.orbits_abandoned += w.totals.orbits_abandoned;
-            stats.steps += w.totals.steps;
-            stats.polls += w.totals.polls;
-        }
-        Ok(stats)
+        totals(coordinator, &ws)
+    }
+
+    /// Registers `workers` simulated workers, each polling first after its shortest wait.
+    fn start_workers(
+        &self,
+        scheduler: &mut Scheduler,
+        job: u64,
+        workers: usize,
+        world: &mut World,
+    ) -> Result<Vec<SimWorker>, String> {
+        let shape = Shape {
+            threads: self.params.threads,
+            lanes: self.lanes,
+            lane_step_ns: self.lane_step_ns(),
+            poll_steps: salient_core::batch::poll_interval(self.spec.cell_run(0).config.tau),
+            max_leases: self.params.max_leases,
+            busy_poll_ns: self.params.config.poll.as_nanos() as u64,
+        };
+        (0..workers)
+            .map(|i| {
+                let reg = scheduler
+                    .register(&v1::RegisterRequest {
+                        protocol_version: PROTOCOL_VERSION,
+                        name: format!("simulated-{i}"),
+                        threads: self.params.threads as u32,
+                    })
+                    .map_err(|e| e.message().to_string())?;
+                let mut w = SimWorker::new(i, reg.worker_id, job, shape, self.spec.grid.mode);
+                w.schedule_send(world, FIRST_POLL_NS);
+                Ok(w)
+            })
+            .collect()
     }
 
     /// The coordinator answers the first waiting poll: the real scheduler, timed.
@@ -565,6 +566,22 @@ impl Simulation {
         }
         Ok(points)
     }
+}
+
+/// A finished simulation's totals: the coordinator's and every worker's.
+fn totals(coordinator: Coordinator, ws: &[SimWorker]) -> Result<RunStats, String> {
+    let finished = coordinator
+        .finished_ns
+        .ok_or("the simulation ran out of events before the job finished")?;
+    let mut stats = coordinator.stats;
+    stats.wall_s = (finished - coordinator.first_lease_ns.unwrap_or(0)) as f64 * 1e-9;
+    for w in ws {
+        stats.orbits_finished += w.totals.orbits_finished;
+        stats.orbits_abandoned += w.totals.orbits_abandoned;
+        stats.steps += w.totals.steps;
+        stats.polls += w.totals.polls;
+    }
+    Ok(stats)
 }
 
 /// The coordinator's side of the simulation: the polls waiting for it and what it answered.

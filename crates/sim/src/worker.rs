@@ -7,8 +7,8 @@
 use crate::world::{Event, World};
 use salient_grid::executor::{Claims, LocalLedger, OrbitTrace, Verdict};
 use salient_grid::Mode;
-use salient_proto::outcome_from_wire;
 use salient_proto::v1;
+use salient_proto::{outcome_from_wire, push_partial};
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::Arc;
 
@@ -640,18 +640,7 @@ impl SimWorker {
         if p.left == 0 {
             self.end_lease(world, key, out.into_iter().collect());
         } else if let Some(o) = out {
-            let lease = p.lease;
-            match self.partial.last_mut() {
-                Some(r) if r.lease == Some(lease) => r.outcomes.push(o),
-                _ => self.partial.push(v1::TileReport {
-                    lease: Some(lease),
-                    outcomes: vec![o],
-                    finished: false,
-                    cpu_ns: 0,
-                    abandoned_orbits: 0,
-                    abandoned_steps: 0,
-                }),
-            }
+            push_partial(&mut self.partial, p.lease, o);
         }
     }
 

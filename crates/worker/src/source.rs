@@ -7,7 +7,7 @@ use crate::signals::{lease_key, LeaseKey, Signals};
 use salient_grid::executor::{CellSource, LocalLedger, Take, Verdict};
 use salient_grid::process_cpu_seconds;
 use salient_grid::Outcome;
-use salient_proto::v1;
+use salient_proto::{push_partial, v1};
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
@@ -342,18 +342,7 @@ impl LeaseSource {
             // Out with the next poll (before the lease's finishing report, which is sent
             // after this and makes the network side collect these first).
             let lease = p.lease;
-            let mut s = self.signals.lock().expect("signals");
-            match s.partial.last_mut() {
-                Some(r) if r.lease == Some(lease) => r.outcomes.push(o),
-                _ => s.partial.push(v1::TileReport {
-                    lease: Some(lease),
-                    outcomes: vec![o],
-                    finished: false,
-                    cpu_ns: 0,
-                    abandoned_orbits: 0,
-                    abandoned_steps: 0,
-                }),
-            }
+            push_partial(&mut self.signals.lock().expect("signals").partial, lease, o);
         }
     }
 }
