@@ -12,6 +12,7 @@ cd "$(dirname "$0")/.."
 cargo build --locked --release --workspace --bins --tests
 cargo test --locked --release --workspace --tests "$@"
 if (($# == 0)); then
-  cargo test --locked --release -p salient-tests --test integration -- --ignored --exact \
+  # --workspace, as above: one package alone unifies features otherwise and rebuilds crates.
+  cargo test --locked --release --workspace --tests -- --ignored --exact \
     simulate_cli::the_simulator_predicts_loopback_runs_of_one_and_two_workers
 fi
