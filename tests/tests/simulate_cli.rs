@@ -108,7 +108,7 @@ fn simulated(spec: &str, extra: &[&str]) -> (Vec<(f64, f64)>, f64) {
         spec,
         "--workers",
         "1,2",
-        "--lease-cells",
+        "--lease-cells-per-thread",
         LEASE_CELLS,
         "--json",
     ];

@@ -44,9 +44,9 @@ pub struct CoordinatorArgs {
     #[arg(long, default_value_t = 10.0)]
     progress_seconds: f64,
     /// Fast PSS: cells per worker thread in one lease for tangent-map methods (smaller:
-    /// fresher claims, less dropped work; larger: fewer round trips); adaptive methods, one
-    /// orbit per thread instead of a batch of 4, get a quarter of it.
-    #[arg(long, default_value_t = 8)]
+    /// fresher claims, less dropped work; larger: fewer round trips); adaptive methods get a
+    /// sixteenth of it per orbit a thread runs at once (2 at the default), at least 1.
+    #[arg(long, default_value_t = salient_coordinator::scheduler::LEASE_CELLS_PER_THREAD)]
     lease_cells_per_thread: usize,
     /// Refuse submitted specs whose grid holds more cells than this.
     #[arg(long, default_value_t = salient_grid::spec::MAX_CELLS)]

@@ -38,11 +38,13 @@ pub struct SimulateArgs {
     /// Seed of the latency jitter.
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// The coordinator's poll interval for busy workers, in milliseconds (`coordinator --poll-ms`).
+    /// The interval at which busy workers poll, in milliseconds (what `salient coordinator`
+    /// tells its workers: 200).
     #[arg(long = "poll-ms", default_value_t = 200)]
     poll_ms: u64,
-    /// Fast PSS: cells per worker thread in one lease (`coordinator --lease-cells`).
-    #[arg(long = "lease-cells", default_value_t = Config::default().lease_cells_per_thread)]
+    /// Fast PSS: cells per worker thread in one lease, as `salient coordinator
+    /// --lease-cells-per-thread`.
+    #[arg(long = "lease-cells-per-thread", default_value_t = Config::default().lease_cells_per_thread)]
     lease_cells: usize,
     /// CPU nanoseconds per orbit-step in a thread's full lanes (default: measured here first).
     #[arg(long = "step-ns")]
@@ -114,7 +116,7 @@ fn params(args: &SimulateArgs) -> CliResult<Params> {
     }
     if !(1..=65_536).contains(&args.lease_cells) {
         return usage(format!(
-            "--lease-cells must be in 1..=65536 (got {})",
+            "--lease-cells-per-thread must be in 1..=65536 (got {})",
             args.lease_cells
         ));
     }
@@ -228,7 +230,7 @@ pub fn simulate(args: SimulateArgs) -> CliResult<()> {
         "rtt_ms": args.rtt_ms,
         "bandwidth_gbit": args.bandwidth_gbit,
         "poll_ms": args.poll_ms,
-        "lease_cells": args.lease_cells,
+        "lease_cells_per_thread": args.lease_cells,
         "coordinator_us": args.coordinator_us,
         "coordinator_stack_us": args.coordinator_stack_us,
         "worker_stack_us": args.worker_stack_us,

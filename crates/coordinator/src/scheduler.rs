@@ -51,8 +51,8 @@ pub struct Config {
     /// Fast PSS: cells per worker thread in one lease, for tangent-map methods (whose
     /// threads run `executor::LANES` orbits at a time); adaptive methods get it scaled by
     /// the orbits a thread runs at once (`run::adaptive_orbits_per_thread`: one, or the
-    /// lanes of a SIMD batch) over `LANES`, at least 1. Small leases are judged on fresher
-    /// claims (less dropped work); large ones cost fewer round trips.
+    /// lanes of a SIMD batch) over [`ADAPTIVE_LEASE_SHARE`], at least 1. Small leases are
+    /// judged on fresher claims (less dropped work); large ones cost fewer round trips.
     pub lease_cells_per_thread: usize,
     /// Largest grid (cells in all) a submitted spec may ask for.
     pub max_cells: usize,
@@ -60,6 +60,17 @@ pub struct Config {
     /// in memory.
     pub max_cell_runs: usize,
 }
+
+/// Default of [`Config::lease_cells_per_thread`]: eight batches of lanes. Every poll costs
+/// about 0.7 ms of CPU in the network stacks of the two ends, against 70 µs in the scheduler,
+/// and leases of two batches made a tangent-map worker poll more often than the fresher claims
+/// saved (figures: docs/performance.md).
+pub const LEASE_CELLS_PER_THREAD: usize = 8 * salient_grid::executor::LANES;
+
+/// An adaptive thread's lease is [`Config::lease_cells_per_thread`] × the orbits it runs at
+/// once / this: two cells per orbit at the default. Threads of one orbit at a time drop more
+/// work with longer leases (figures: docs/performance.md).
+pub const ADAPTIVE_LEASE_SHARE: usize = 16;
 
 /// Default of [`Config::max_cell_runs`]: a 4000×4000 grid twice, or the paper's 400×400 Table 2
 /// (24 runs) 80 times over; about 0.8 GB of ledgers at most.
@@ -74,7 +85,7 @@ impl Default for Config {
             lease: Duration::from_secs(30),
             poll: Duration::from_millis(200),
             worker_timeout: DEFAULT_WORKER_TIMEOUT,
-            lease_cells_per_thread: 2 * salient_grid::executor::LANES,
+            lease_cells_per_thread: LEASE_CELLS_PER_THREAD,
             max_cells: spec::MAX_CELLS,
             max_cell_runs: MAX_CELL_RUNS,
         }
@@ -1086,7 +1097,7 @@ impl Scheduler {
                 if job.spec.grid.mode == salient_grid::Mode::FastPss {
                     let mut per_thread = self.cfg.lease_cells_per_thread;
                     if let Some(orbits) = job.runs[key.1 as usize].adaptive_orbits_per_thread {
-                        per_thread = (per_thread * orbits / salient_grid::executor::LANES).max(1);
+                        per_thread = (per_thread * orbits / ADAPTIVE_LEASE_SHARE).max(1);
                     }
                     cells.truncate((threads * per_thread).max(1));
                 }

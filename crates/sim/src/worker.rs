@@ -34,7 +34,7 @@ pub struct Shape {
     pub threads: usize,
     /// Orbits a thread runs at once.
     pub lanes: usize,
-    /// Virtual nanoseconds a lane takes per step (its thread steps all its lanes together).
+    /// CPU nanoseconds a lane takes per step (its thread steps all its lanes together).
     pub lane_step_ns: f64,
     /// Steps between two checks of a running orbit for abandonment.
     pub poll_steps: u64,
