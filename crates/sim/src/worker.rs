@@ -9,6 +9,7 @@ use salient_grid::executor::{Claims, LocalLedger, OrbitTrace, Verdict};
 use salient_grid::Mode;
 use salient_proto::v1;
 use salient_proto::{outcome_from_wire, push_partial};
+use salient_worker::free_slots;
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::Arc;
 
@@ -19,14 +20,11 @@ fn lease_key(l: &v1::TileRef) -> LeaseKey {
 }
 
 /// How long an idle stream whose waiting cells are all deferred waits before it starts the
-/// first anyway (the worker's stream waits 5 ms for an outcome that may settle them).
-const FORCE_AFTER_NS: u64 = 5_000_000;
+/// first anyway: the worker's own wait.
+const FORCE_AFTER_NS: u64 = salient_worker::IDLE_WAIT.as_nanos() as u64;
 
 /// A worker's first poll comes after its shortest idle wait.
 pub const FIRST_POLL_NS: u64 = 2_000_000;
-
-/// Leases a hungry compute side asks for at once (as the worker does).
-const HUNGRY_LEASES: usize = 2;
 
 /// How the simulated workers are built.
 #[derive(Clone, Copy, Debug)]
@@ -173,19 +171,14 @@ impl SimWorker {
         self.busy_threads = busy;
     }
 
-    /// Leases to ask for, as the worker's `free_slots`.
+    /// Leases to ask for: the worker's own rule.
     fn free_slots(&self) -> usize {
-        let cap = if self.mode == Mode::FastPss {
-            1
-        } else {
-            self.shape.max_leases
-        };
-        let hungry = if self.hungry_compute {
-            HUNGRY_LEASES
-        } else {
-            0
-        };
-        cap.saturating_sub(self.held.len()).max(hungry)
+        free_slots(
+            self.held.len(),
+            self.hungry_compute,
+            self.mode == Mode::FastPss,
+            self.shape.max_leases,
+        )
     }
 
     /// Schedules the next poll `delay_ns` from now (replacing any timer set before).

@@ -72,7 +72,7 @@ async fn register(client: &mut Client, opts: &Options) -> Result<v1::RegisterRep
 /// for before a lane is free would take cells before the outcomes that may label them arrive,
 /// and is slower (figures: docs/performance.md). Full-mode tiles carry no such risk, and a
 /// second one keeps the threads busy across the round trip.
-fn free_slots(held: usize, hungry: bool, one_at_a_time: bool, max: usize) -> usize {
+pub fn free_slots(held: usize, hungry: bool, one_at_a_time: bool, max: usize) -> usize {
     let cap = if one_at_a_time { 1 } else { max };
     let hungry = if hungry { HUNGRY_LEASES } else { 0 };
     cap.saturating_sub(held).max(hungry)
@@ -82,7 +82,7 @@ fn free_slots(held: usize, hungry: bool, one_at_a_time: bool, max: usize) -> usi
 /// one tile, often only a few of the batch it may hold, and every poll that carries reports
 /// waits for the coordinator's fsync while the lanes run dry. Two beat one; three drop more
 /// and are no faster (figures: docs/performance.md).
-const HUNGRY_LEASES: usize = 2;
+pub const HUNGRY_LEASES: usize = 2;
 
 /// Reports sent in one poll at most (bytes); the rest go in the next, well below the
 /// coordinator's message limit.

@@ -16,6 +16,10 @@ mod lease_loop;
 mod signals;
 mod source;
 
+// The rules of the lease loop and the stream that the scaling simulator (salient-sim) replays.
+pub use lease_loop::{free_slots, HUNGRY_LEASES};
+pub use source::IDLE_WAIT;
+
 use compute::{compute_thread, Done, Work};
 use lease_loop::{connect, lease_loop};
 use salient_proto::v1;

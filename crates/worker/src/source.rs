@@ -14,6 +14,10 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 use tokio::sync::mpsc;
 
+/// How long a stream whose lanes are all idle waits for a lease or an ended orbit before it
+/// starts the first deferred cell anyway (then nothing here could settle it).
+pub const IDLE_WAIT: Duration = Duration::from_millis(5);
+
 /// The leases of one stream: their cells waiting in order, and per lease what has ended.
 pub(crate) struct LeaseSource {
     state: Mutex<SourceState>,
@@ -238,10 +242,7 @@ impl CellSource for LeaseSource {
             // orbit running here, what the waiting cells wait for comes from elsewhere (the
             // coordinator's skips, other workers' outcomes): after a wait, the first of them
             // goes anyway, so the stream cannot stall.
-            let (g, timeout) = self
-                .more
-                .wait_timeout(st, Duration::from_millis(5))
-                .expect("lease source");
+            let (g, timeout) = self.more.wait_timeout(st, IDLE_WAIT).expect("lease source");
             st = g;
             if timeout.timed_out() {
                 if st.running > 0 {
