@@ -110,6 +110,10 @@ impl Default for Params {
     }
 }
 
+/// Cells the sequential rule's ledger takes per round when [`Simulation::sequential`] traces
+/// them: enough to fill every thread's lanes.
+const SEQUENTIAL_ROUND: usize = 256;
+
 /// One simulated job with W workers.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct RunStats {
@@ -238,17 +242,19 @@ impl Simulation {
         self.step_ns * self.lanes as f64
     }
 
-    /// The ledger of every run under the sequential rule, from `traces`.
+    /// The ledger of every run under the sequential rule, from `traces`: the cells the ledger
+    /// needs next are traced [`SEQUENTIAL_ROUND`] at a time (in full lanes, on every thread)
+    /// and offered; those an earlier orbit labels meanwhile are dropped.
     fn sequential_ledgers(grid: &Grid, mode: Mode, traces: &mut [Traces]) -> Vec<Ledger> {
         traces
             .iter_mut()
             .map(|t| {
-                let labels =
-                    salient_grid::ledger::sequential(grid, mode, |c| t.get(c).outcome.clone());
                 let mut ledger = Ledger::new(grid, mode);
-                for (cell, label) in labels.iter().enumerate() {
-                    if label.is_some_and(|l| l.source as usize == cell) {
-                        ledger.offer(t.get(cell as u32).outcome.clone());
+                while !ledger.done() {
+                    let cells = ledger.needed(SEQUENTIAL_ROUND, &|_| false);
+                    t.ensure(&cells);
+                    for c in cells {
+                        ledger.offer(t.get(c).outcome.clone());
                     }
                 }
                 ledger
@@ -290,20 +296,13 @@ impl Simulation {
 
     /// What the sequential rule integrates, summed over the runs (the longest orbit: of all).
     pub fn sequential(&mut self) -> Sequential {
-        let mut total = Sequential::default();
         let mode = self.spec.grid.mode;
-        for traces in &mut self.traces {
-            let labels = salient_grid::ledger::sequential(&self.grid, mode, |c| {
-                traces.get(c).outcome.clone()
-            });
-            for (cell, label) in labels.iter().enumerate() {
-                if label.is_some_and(|l| l.source as usize == cell) {
-                    let steps = traces.get(cell as u32).outcome.steps;
-                    total.orbits += 1;
-                    total.steps += steps;
-                    total.longest_steps = total.longest_steps.max(steps);
-                }
-            }
+        let mut total = Sequential::default();
+        for ledger in Self::sequential_ledgers(&self.grid, mode, &mut self.traces) {
+            total.orbits += ledger.committed.len() as u64;
+            total.steps += ledger.committed_steps;
+            let longest = ledger.committed.iter().map(|o| o.steps).max();
+            total.longest_steps = total.longest_steps.max(longest.unwrap_or(0));
         }
         total
     }
