@@ -6,6 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::usage::{runtime, CliError, CliResult};
+use salient_report::Table;
 
 /// The prefix of staging folders; a folder left by a killed process is recognisable by it.
 const STAGING_PREFIX: &str = ".salient-partial-";
@@ -152,6 +153,26 @@ fn remove_if_present(path: &Path) -> CliResult<()> {
         }
         _ => Ok(()),
     }
+}
+
+/// Writes `STEM.md` and `STEM.csv` (the table) and `STEM.json` (the summary) into `dir`: the
+/// three files every table-making command leaves.
+pub fn write_tables(
+    dir: &Path,
+    stem: &str,
+    table: &Table,
+    summary: &serde_json::Value,
+) -> CliResult<()> {
+    let write = |ext: &str, text: String| {
+        let path = dir.join(format!("{stem}.{ext}"));
+        std::fs::write(&path, text).map_err(|e| runtime(&format!("writing {}", path.display()), e))
+    };
+    write("md", table.to_markdown())?;
+    write("csv", table.to_csv())?;
+    write(
+        "json",
+        serde_json::to_string_pretty(summary).expect("JSON") + "\n",
+    )
 }
 
 #[cfg(test)]

@@ -1,6 +1,6 @@
 //! `salient precision`: speed against error for every method on one orbit.
 
-use crate::output::Staged;
+use crate::output::{write_tables, Staged};
 use crate::usage::{finite, runtime, CliError, CliResult};
 use clap::Args;
 use salient_core::precision::{
@@ -217,16 +217,7 @@ fn write_outputs(
     summary: &Value,
     rows: &[Row],
 ) -> CliResult<()> {
-    let write = |file: &str, text: String| {
-        let path = dir.join(file);
-        std::fs::write(&path, text).map_err(|e| runtime(&format!("writing {}", path.display()), e))
-    };
-    write("precision.md", table.to_markdown())?;
-    write("precision.csv", table.to_csv())?;
-    write(
-        "precision.json",
-        serde_json::to_string_pretty(summary).expect("JSON") + "\n",
-    )?;
+    write_tables(dir, "precision", table, summary)?;
 
     // One line per method and protocol: end-point error against wall time.
     let mut groups: BTreeMap<String, (Vec<f64>, Vec<f64>)> = BTreeMap::new();

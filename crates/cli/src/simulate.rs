@@ -2,7 +2,7 @@
 //! (the real scheduler against simulated workers in virtual time).
 
 use crate::client::spec_json;
-use crate::output::Staged;
+use crate::output::{write_tables, Staged};
 use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
 use salient_coordinator::scheduler::Config;
@@ -302,16 +302,7 @@ fn write_outputs(
     summary: &serde_json::Value,
     points: &[Point],
 ) -> CliResult<()> {
-    let write = |file: &str, text: String| {
-        let path = dir.join(file);
-        std::fs::write(&path, text).map_err(|e| runtime(&format!("writing {}", path.display()), e))
-    };
-    write("simulate.md", table.to_markdown())?;
-    write("simulate.csv", table.to_csv())?;
-    write(
-        "simulate.json",
-        serde_json::to_string_pretty(summary).expect("JSON") + "\n",
-    )?;
+    write_tables(dir, "simulate", table, summary)?;
     let ws: Vec<f64> = points.iter().map(|p| p.stats.workers as f64).collect();
     let speedups: Vec<f64> = points.iter().map(|p| p.speedup).collect();
     let bounds: Vec<f64> = points.iter().map(|p| p.bound).collect();
