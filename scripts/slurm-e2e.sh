@@ -296,50 +296,14 @@ show_job_logs() { # show_job_logs ID: the tail of each log of the job, on a fail
   done
 }
 
-# Outputs of `salient run` (A) and `salient results` (B): the same files; per-cell files byte
-# for byte; the tables and run.json without what measures the run rather than its result (CPU
-# and wall seconds, dropped work, out_dir, forecast_from; docs/outputs.md).
-normalized() { # normalized FILE
-  case ${1##*/} in
-    run.json | table.json)
-      sed -E '/^[[:space:]]*"(cpu_s|wall_s|orbits_dropped|steps_dropped|steps_total|out_dir|forecast_from)":/d' "$1"
-      ;;
-    # The last four columns: dropped, % steps dropped, CPU s, wall s (Markdown rows also end
-    # in an empty field after the last '|').
-    table.csv) awk -F, '{ s = $1; for (i = 2; i <= NF - 4; i++) s = s FS $i; print s }' "$1" ;;
-    table.md) awk -F'|' '{ s = $1; for (i = 2; i <= NF - 5; i++) s = s FS $i; print s }' "$1" ;;
-    *) cat "$1" ;;
-  esac
-}
+# Outputs of `salient run` and `salient results` compared (compare_outputs), and at least one
+# cells.csv among them.
+# shellcheck source=scripts/compare-outputs.sh
+source "$repo/scripts/compare-outputs.sh"
 compare() { # compare A B: prints the differences; 1 when there are any
-  local a=$1 b=$2 la lb f bad=0 cells=0
-  la=$(cd "$a" && find . -type f | sed 's,^\./,,' | LC_ALL=C sort)
-  lb=$(cd "$b" && find . -type f | sed 's,^\./,,' | LC_ALL=C sort)
-  if [[ $la != "$lb" ]]; then
-    echo "the file sets differ (< salient run, > salient results):"
-    diff <(echo "$la") <(echo "$lb") | grep '^[<>]' || true
-    bad=1
-  fi
-  while read -r f; do
-    [[ -n $f && -f $b/$f ]] || continue
-    case ${f##*/} in
-      run.json | table.json | table.csv | table.md)
-        if ! cmp -s <(normalized "$a/$f") <(normalized "$b/$f"); then
-          echo "$f differs beyond timings:"
-          diff <(normalized "$a/$f") <(normalized "$b/$f") | head -n 12 || true
-          bad=1
-        fi
-        ;;
-      *)
-        if [[ ${f##*/} == cells.csv ]]; then cells=$((cells + 1)); fi
-        if ! cmp -s "$a/$f" "$b/$f"; then
-          echo "$f differs: $(cmp "$a/$f" "$b/$f" 2>&1 | head -n 1)"
-          bad=1
-        fi
-        ;;
-    esac
-  done <<<"$la"
-  if ((cells == 0)); then echo "no cells.csv in $a"; bad=1; fi
+  local bad=0
+  compare_outputs "$1" "$2" || bad=1
+  if [[ -z $(find "$1" -name cells.csv -print -quit) ]]; then echo "no cells.csv in $1"; bad=1; fi
   return "$bad"
 }
 check_same() { # check_same WHAT EMBEDDED DISTRIBUTED

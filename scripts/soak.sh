@@ -549,48 +549,8 @@ else
 fi
 
 # --- outputs equal those of salient run -------------------------------------------------------
-# What measures the run rather than its result, left out of the comparison.
-normalized() { # normalized FILE
-  case ${1##*/} in
-    run.json | table.json)
-      sed -E '/^[[:space:]]*"(cpu_s|wall_s|orbits_dropped|steps_dropped|steps_total|out_dir|forecast_from)":/d' "$1"
-      ;;
-    # The last four columns: dropped, % steps dropped, CPU s, wall s (Markdown rows also end
-    # in an empty field after the last '|').
-    table.csv) awk -F, '{ s = $1; for (i = 2; i <= NF - 4; i++) s = s FS $i; print s }' "$1" ;;
-    table.md) awk -F'|' '{ s = $1; for (i = 2; i <= NF - 5; i++) s = s FS $i; print s }' "$1" ;;
-    *) cat "$1" ;;
-  esac
-}
-compare() { # compare EMBEDDED DISTRIBUTED: prints the differences; status 1 when there are any
-  local a=$1 b=$2 la lb f bad=0
-  la=$(cd "$a" && find . -type f | sed "s,^\./,," | LC_ALL=C sort)
-  lb=$(cd "$b" && find . -type f | sed "s,^\./,," | LC_ALL=C sort)
-  if [[ $la != "$lb" ]]; then
-    echo "    the file sets differ (< salient run, > salient results):"
-    diff <(echo "$la") <(echo "$lb") | grep '^[<>]' | sed 's/^/      /' || true
-    bad=1
-  fi
-  while read -r f; do
-    [[ -n $f && -f $b/$f ]] || continue
-    case ${f##*/} in
-      run.json | table.json | table.csv | table.md)
-        if ! cmp -s <(normalized "$a/$f") <(normalized "$b/$f"); then
-          echo "    $f differs beyond timings:"
-          diff <(normalized "$a/$f") <(normalized "$b/$f") | head -n 12 | sed 's/^/      /' || true
-          bad=1
-        fi
-        ;;
-      *)
-        if ! cmp -s "$a/$f" "$b/$f"; then
-          echo "    $f differs: $(cmp "$a/$f" "$b/$f" 2>&1 | head -n 1)"
-          bad=1
-        fi
-        ;;
-    esac
-  done <<<"$la"
-  return "$bad"
-}
+# shellcheck source=scripts/compare-outputs.sh
+source "$repo/scripts/compare-outputs.sh"
 
 compared=0
 for id in "${job_ids[@]}"; do
@@ -606,7 +566,7 @@ for id in "${job_ids[@]}"; do
     fail "salient run $spec failed (job $id)"
     continue
   fi
-  if ! diffs=$(compare "$emb" "$dist"); then
+  if ! diffs=$(compare_outputs "$emb" "$dist" | sed 's/^/    /'); then
     fail "job $id: the results differ from salient run's (spec $spec):"
     echo "$diffs" >&2
     sed 's/^/    /' "$spec" >&2
