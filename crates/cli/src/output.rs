@@ -175,6 +175,25 @@ pub fn write_tables(
     )
 }
 
+/// Prints a table-making command's result: its summary as one JSON object (`--json`), or the
+/// table and, when it wrote them, where its `files` went.
+pub fn print_result(
+    json: bool,
+    summary: &serde_json::Value,
+    table: &Table,
+    out: Option<&Path>,
+    files: &str,
+) {
+    if json {
+        println!("{summary}");
+    } else {
+        print!("{}", table.to_markdown());
+        if let Some(dir) = out {
+            println!("wrote {}/{files}", dir.display());
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,6 +1,6 @@
 //! `salient precision`: speed against error for every method on one orbit.
 
-use crate::output::{write_tables, Staged};
+use crate::output::{print_result, write_tables, Staged};
 use crate::usage::{finite, runtime, CliError, CliResult};
 use clap::Args;
 use salient_core::precision::{
@@ -195,17 +195,13 @@ pub fn run(args: PrecisionArgs) -> CliResult<()> {
         write_outputs(staged.path(), &name, args.t_final, &table, &summary, &rows)?;
         staged.publish()?;
     }
-    if args.json {
-        println!("{summary}");
-    } else {
-        print!("{}", table.to_markdown());
-        if let Some(dir) = &args.out {
-            println!(
-                "wrote {}/precision.md, precision.csv, precision.json, work_precision.png",
-                dir.display()
-            );
-        }
-    }
+    print_result(
+        args.json,
+        &summary,
+        &table,
+        args.out.as_deref(),
+        "precision.md, precision.csv, precision.json, work_precision.png",
+    );
     Ok(())
 }
 

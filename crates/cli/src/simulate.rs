@@ -2,7 +2,7 @@
 //! (the real scheduler against simulated workers in virtual time).
 
 use crate::client::spec_json;
-use crate::output::{write_tables, Staged};
+use crate::output::{print_result, write_tables, Staged};
 use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
 use salient_coordinator::scheduler::Config;
@@ -244,17 +244,13 @@ pub fn simulate(args: SimulateArgs) -> CliResult<()> {
         write_outputs(staged.path(), &job.name, &table, &summary, &points)?;
         staged.publish()?;
     }
-    if args.json {
-        println!("{summary}");
-    } else {
-        print!("{}", table.to_markdown());
-        if let Some(dir) = &args.out {
-            println!(
-                "wrote {}/simulate.md, simulate.csv, simulate.json, speedup.png",
-                dir.display()
-            );
-        }
-    }
+    print_result(
+        args.json,
+        &summary,
+        &table,
+        args.out.as_deref(),
+        "simulate.md, simulate.csv, simulate.json, speedup.png",
+    );
     Ok(())
 }
 
