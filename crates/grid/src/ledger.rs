@@ -54,10 +54,17 @@ const LABELLED: u8 = 2;
 /// cell of its window, and a flag answers without a map lookup.
 const PENDING: u8 = 4;
 
-/// Per cell, how many pending outcomes before it in canonical order crossed it. A count answers
-/// [`Ledger::is_claimed`], the only question asked of the claims, at one increment and one
-/// decrement per visited cell (a list of claimers per cell costs an allocation, a search and
-/// scattered reads, a large share of the coordinator's CPU; figures: docs/performance.md).
+/// Per cell, how many live pending outcomes before it in canonical order crossed it. A pending
+/// outcome is live when no live pending outcome before it crossed its own cell: it is what the
+/// sequential rule would commit if every outcome still missing labelled nothing, so its claims
+/// are the likely labels, while those of an outcome that an earlier one labels are not (it will
+/// be dropped and its claims with it). Counting only live claims keeps the cells those doomed
+/// outcomes crossed wanted, so they are integrated alongside the rest instead of one after
+/// another as the frontier drops their claimers (figures: docs/performance.md).
+///
+/// A count answers [`Ledger::is_claimed`], the only question asked of the claims, at one
+/// increment and one decrement per visited cell (a list of claimers per cell costs an
+/// allocation, a search and scattered reads, a large share of the coordinator's CPU).
 #[derive(Clone, Debug)]
 struct ClaimCounts {
     early: Vec<u32>,
@@ -69,7 +76,15 @@ struct ClaimCounts {
 impl ClaimCounts {
     /// Makes (`add`) or takes back the claims of the pending outcome at canonical position
     /// `pos` that crossed `visited`: one rule for both, so that every claim made is released.
-    fn count(&mut self, position: &[u32], visited: &[u32], pos: usize, add: bool) {
+    /// Calls `flipped(cell, claimed)` for every cell whose claimed state changed.
+    fn count(
+        &mut self,
+        position: &[u32],
+        visited: &[u32],
+        pos: usize,
+        add: bool,
+        mut flipped: impl FnMut(u32, bool),
+    ) {
         for &v in visited {
             if (pos as u32) < position[v as usize] {
                 let n = &mut self.early[v as usize];
@@ -83,10 +98,19 @@ impl ClaimCounts {
                     if let Some(changes) = &mut self.changes {
                         changes.push(v);
                     }
+                    flipped(v, !was_claimed);
                 }
             }
         }
     }
+}
+
+/// An outcome waiting for the cells before it, and whether its claims count (see
+/// [`ClaimCounts`]).
+#[derive(Clone, Debug)]
+struct Pending {
+    outcome: Outcome,
+    live: bool,
 }
 
 /// Who labelled each cell in a finished fast-PSS run ([`Ledger::forecast`]), as a forecast of
@@ -136,7 +160,7 @@ pub struct Ledger {
     resolved: usize,
     /// Next canonical position to commit.
     next: usize,
-    pending: BTreeMap<usize, Outcome>,
+    pending: BTreeMap<usize, Pending>,
     /// Outcomes committed, in canonical order (their checkpoints feed Fig. 7).
     pub committed: Vec<Outcome>,
     pub dropped: u64,
@@ -144,10 +168,12 @@ pub struct Ledger {
     pub committed_steps: u64,
     /// Cells labelled since the last [`Ledger::take_newly_labelled`].
     newly_labelled: Vec<u32>,
-    /// Fast PSS: the claims of pending outcomes.
+    /// Fast PSS: the claims of live pending outcomes.
     claims: ClaimCounts,
-    /// Claims released by dropped outcomes so far (see [`Ledger::reopenings`]).
+    /// Cells that lost their last claim while unlabelled, so far (see [`Ledger::reopenings`]).
     reopened: u64,
+    /// Positions of pending outcomes whose liveness may have changed (see [`Ledger::relive`]).
+    recheck: std::collections::BinaryHeap<std::cmp::Reverse<usize>>,
 }
 
 impl Ledger {
@@ -174,6 +200,7 @@ impl Ledger {
                 changes: None,
             },
             reopened: 0,
+            recheck: std::collections::BinaryHeap::new(),
         }
     }
 
@@ -261,11 +288,12 @@ impl Ledger {
                 || self.label(cell).is_some_and(|l| l.source == cell))
     }
 
-    /// Whether a pending outcome earlier in canonical order crossed the cell: if that outcome
-    /// commits, the cell is labelled by it, so integrating the cell now is probably wasted.
-    /// Only probably: the claimer may itself be dropped, and then the claim goes with it. The
-    /// frontier cell is never claimed (every pending outcome lies after it), so a scheduler
-    /// that skips claimed cells still makes progress.
+    /// Whether a live pending outcome earlier in canonical order crossed the cell (see
+    /// [`ClaimCounts`]): if that outcome commits, the cell is labelled by it, so integrating the
+    /// cell now is probably wasted. Only probably: an orbit not yet integrated may label the
+    /// claimer's cell, and then the claim goes with it. The frontier cell is never claimed
+    /// (every pending outcome lies after it), so a scheduler that skips claimed cells still
+    /// makes progress.
     pub fn is_claimed(&self, cell: u32) -> bool {
         self.claims.early[cell as usize] != 0
     }
@@ -275,19 +303,19 @@ impl Ledger {
     }
 
     /// Whether the cell still needs its own orbit now: compatible, unlabelled, without an
-    /// outcome, and not claimed by an earlier pending outcome.
+    /// outcome, and not claimed by an earlier live pending outcome.
     pub fn wants(&self, cell: u32) -> bool {
         // Unlabelled, so an outcome of its own can only be pending.
         self.flags[cell as usize] & (COMPATIBLE | LABELLED | PENDING) == COMPATIBLE
             && !self.is_claimed(cell)
     }
 
-    /// Changes only when claims of a dropped outcome are released. Every other way out of
-    /// [`Ledger::wants`] is for good (a cell labelled stays labelled; a pending outcome is
-    /// committed, labelling its cell, or dropped because its cell is labelled; a committed
-    /// claimer labels the cells it claimed), so a cell found unwanted stays unwanted while
-    /// this count is unchanged: the coordinator skips tiles it found empty without scanning
-    /// them again.
+    /// Changes whenever an unlabelled cell loses its last claim (its claimers were dropped or
+    /// stopped being live). Every other way out of [`Ledger::wants`] is for good (a cell
+    /// labelled stays labelled; a pending outcome is committed, labelling its cell, or dropped
+    /// because its cell is labelled; a committed claimer labels the cells it claimed), so a
+    /// cell found unwanted stays unwanted while this count is unchanged: the coordinator skips
+    /// tiles it found empty without scanning them again.
     pub fn reopenings(&self) -> u64 {
         self.reopened
     }
@@ -335,56 +363,114 @@ impl Ledger {
         if pos < self.next || self.flags[outcome.cell as usize] & (LABELLED | PENDING) != 0 {
             self.dropped += 1;
             self.dropped_steps = self.dropped_steps.saturating_add(outcome.steps);
-            self.advance(None);
+            self.advance();
             return;
         }
         self.flags[outcome.cell as usize] |= PENDING;
-        self.pending.insert(pos, outcome);
-        self.advance(Some(pos));
+        self.pending.insert(
+            pos,
+            Pending {
+                outcome,
+                live: false,
+            },
+        );
+        self.advance();
         // Claims matter only while an outcome waits for earlier ones, so they are made only
         // for one that did not commit at once (in a streaming run most do).
-        if self.mode == Mode::FastPss {
-            if let Some(o) = self.pending.get(&pos) {
-                self.claims.count(&self.position, &o.visited, pos, true);
-            }
+        if self.mode == Mode::FastPss && self.pending.contains_key(&pos) {
+            self.recheck.push(std::cmp::Reverse(pos));
+            self.relive();
         }
     }
 
-    /// Commits pending outcomes in canonical order while the next one is there; `unclaimed`
-    /// is the position of an outcome whose claims are not made yet.
-    fn advance(&mut self, unclaimed: Option<usize>) {
+    /// Commits pending outcomes in canonical order while the next one is there.
+    fn advance(&mut self) {
         while self.next < self.canonical.len() {
             let cell = self.canonical[self.next];
             let pos = self.next;
             if self.is_labelled(cell) {
-                if let Some(o) = self.pending.remove(&pos) {
+                if let Some(p) = self.pending.remove(&pos) {
                     self.flags[cell as usize] &= !PENDING;
-                    if unclaimed != Some(pos) {
-                        self.release_claims(&o, pos);
-                        self.reopened += 1;
-                    }
+                    self.release_claims(&p, pos);
                     self.dropped += 1;
-                    self.dropped_steps = self.dropped_steps.saturating_add(o.steps);
+                    self.dropped_steps = self.dropped_steps.saturating_add(p.outcome.steps);
                 }
                 self.next += 1;
                 continue;
             }
-            let Some(o) = self.pending.remove(&pos) else {
+            let Some(p) = self.pending.remove(&pos) else {
                 break;
             };
             self.flags[cell as usize] &= !PENDING;
-            if unclaimed != Some(pos) {
-                self.release_claims(&o, pos);
+            // Labels first: the claims it releases then fall on labelled cells, which reopen
+            // nothing.
+            let claims = p.live.then(|| p.outcome.visited.clone());
+            self.commit(p.outcome);
+            if let Some(visited) = claims {
+                self.release(&visited, pos);
             }
-            self.commit(o);
             self.next += 1;
+        }
+        self.relive();
+    }
+
+    /// Takes back the claims of the pending outcome `p` at `pos`, if it is live.
+    fn release_claims(&mut self, p: &Pending, pos: usize) {
+        if p.live {
+            self.release(&p.outcome.visited, pos);
         }
     }
 
-    /// Takes back the claims [`Ledger::offer`] made for the pending outcome `o` at `pos`.
-    fn release_claims(&mut self, o: &Outcome, pos: usize) {
-        if self.mode == Mode::FastPss {
-            self.claims.count(&self.position, &o.visited, pos, false);
+    /// Takes back the claims of a live outcome at `pos` that crossed `visited`; an unlabelled
+    /// cell left without a claim is reopened, and a pending outcome there is checked again.
+    fn release(&mut self, visited: &[u32], pos: usize) {
+        let (flags, position, recheck, reopened) = (
+            &self.flags,
+            &self.position,
+            &mut self.recheck,
+            &mut self.reopened,
+        );
+        self.claims
+            .count(position, visited, pos, false, |cell, claimed| {
+                if !claimed && flags[cell as usize] & LABELLED == 0 {
+                    *reopened += 1;
+                    if flags[cell as usize] & PENDING != 0 {
+                        recheck.push(std::cmp::Reverse(position[cell as usize] as usize));
+                    }
+                }
+            });
+    }
+
+    /// Brings the liveness of the pending outcomes queued in `recheck` up to date, earliest
+    /// first: an outcome's liveness depends only on the live outcomes before it, so each
+    /// change queues only later ones and one pass in canonical order settles them all.
+    fn relive(&mut self) {
+        while let Some(std::cmp::Reverse(pos)) = self.recheck.pop() {
+            let cell = self.canonical[pos];
+            let should =
+                self.flags[cell as usize] & LABELLED == 0 && self.claims.early[cell as usize] == 0;
+            let Some(p) = self.pending.get_mut(&pos) else {
+                continue;
+            };
+            if p.live == should {
+                continue;
+            }
+            p.live = should;
+            let visited = std::mem::take(&mut p.outcome.visited);
+            if should {
+                let (flags, position, recheck) = (&self.flags, &self.position, &mut self.recheck);
+                self.claims
+                    .count(position, &visited, pos, true, |cell, claimed| {
+                        if claimed && flags[cell as usize] & PENDING != 0 {
+                            recheck.push(std::cmp::Reverse(position[cell as usize] as usize));
+                        }
+                    });
+            } else {
+                self.release(&visited, pos);
+            }
+            if let Some(p) = self.pending.get_mut(&pos) {
+                p.outcome.visited = visited;
+            }
         }
     }
 
@@ -397,6 +483,11 @@ impl Ledger {
         if self.mode == Mode::FastPss {
             for &v in &o.visited {
                 if self.is_unlabelled_compatible(v) {
+                    if self.flags[v as usize] & PENDING != 0 {
+                        // Its outcome will be dropped: its claims no longer count.
+                        self.recheck
+                            .push(std::cmp::Reverse(self.position[v as usize] as usize));
+                    }
                     self.labelled_by[v as usize] = index;
                     self.flags[v as usize] |= LABELLED;
                     self.resolved += 1;
@@ -516,11 +607,15 @@ mod tests {
                     let pending = grid.position(c).is_some_and(|p| ledger.pending.contains_key(&p));
                     prop_assert_eq!(ledger.flags[c as usize] & PENDING != 0, pending);
                 }
-                // A cell is claimed exactly when a pending outcome before it crossed it.
+                // A cell is claimed exactly when a live pending outcome before it crossed it,
+                // live meaning that no live one before it crossed its own (unlabelled) cell.
                 let mut claimed = vec![false; grid.cells()];
                 if mode == Mode::FastPss {
-                    for (&p, o) in &ledger.pending {
-                        for &v in &o.visited {
+                    for (&p, pending) in &ledger.pending {
+                        let live = !ledger.is_labelled(pending.outcome.cell)
+                            && !claimed[pending.outcome.cell as usize];
+                        prop_assert_eq!(pending.live, live, "outcome at {}", p);
+                        for &v in pending.outcome.visited.iter().filter(|_| live) {
                             if grid.position(v).is_some_and(|q| p < q) {
                                 claimed[v as usize] = true;
                             }
@@ -688,5 +783,39 @@ mod tests {
             ledger.needed(2, &|c| c == canon[0]),
             vec![canon[1], canon[3]]
         );
+    }
+
+    /// Pending outcomes in a chain, each crossing the next one's cell: only those that no live
+    /// earlier one crossed are live, and only live ones claim. Each outcome added before the
+    /// chain flips the liveness of everything after it.
+    #[test]
+    fn an_outcome_whose_cell_an_earlier_one_crossed_claims_nothing() {
+        let grid = Grid::new(0.125, 6, 6, (-0.43, 0.67), (-0.5, 0.5), (3, 3));
+        let canon = grid.canonical().to_vec();
+        let outcome = |at: usize, crosses: Option<usize>| Outcome {
+            visited: crosses.map(|c| canon[c]).into_iter().collect(),
+            ..fake(&grid, 1, canon[at])
+        };
+        let (first, third) = (canon[2], canon[6]);
+        let mut ledger = Ledger::new(&grid, Mode::FastPss);
+        ledger.offer(outcome(4, Some(6)));
+        assert!(ledger.is_claimed(third) && !ledger.wants(third));
+        // The outcome at 2 crosses the one at 4, which will be dropped: its claim goes.
+        ledger.offer(outcome(2, Some(4)));
+        assert!(!ledger.is_claimed(third) && ledger.wants(third));
+        // The outcome at 1 crosses the one at 2: 4 is live again and claims 6.
+        ledger.offer(outcome(1, Some(2)));
+        assert!(ledger.is_claimed(third) && !ledger.wants(third));
+        // Committing 0 and 1 labels 2, whose outcome is dropped; 4 waits behind the hole at 3,
+        // still claiming 6.
+        ledger.offer(outcome(0, None));
+        assert!(ledger.is_labelled(first));
+        assert_eq!(ledger.frontier(), 3);
+        assert!(ledger.is_claimed(third) && !ledger.wants(third));
+        let reopenings = ledger.reopenings();
+        // An outcome at 3 crossing 4 makes 4's claim go for good.
+        ledger.offer(outcome(3, Some(4)));
+        assert!(!ledger.is_claimed(third) && ledger.wants(third));
+        assert!(ledger.reopenings() > reopenings);
     }
 }

@@ -31,7 +31,7 @@ pub struct Claims {
     crossed_by: Vec<[AtomicU32; CROSSERS]>,
     /// Per cell, whether its orbit is running in some lane.
     running: Vec<AtomicBool>,
-    /// Per cell, whether a pending outcome before it in canonical order crossed it: the
+    /// Per cell, whether a live pending outcome before it in canonical order crossed it: the
     /// ledger's [`Ledger::is_claimed`], mirrored at every [`Claims::sync`] so that running
     /// orbits can ask without the lock (the embedded engine only).
     pending_claimed: Vec<AtomicBool>,
@@ -180,8 +180,8 @@ impl Claims {
             .map(|(_, from)| from)
     }
 
-    /// Whether the orbit of `cell` is probably wasted: a pending outcome before it crossed it,
-    /// or a running orbit before it did and that orbit is itself neither claimed nor crossed
+    /// Whether the orbit of `cell` is probably wasted: a live pending outcome before it crossed
+    /// it, or a running orbit before it did and that orbit is itself neither claimed nor crossed
     /// by an earlier running one, so it will very likely commit and label the cell. (If it
     /// does not, the cell is integrated again later: abandoning costs the steps done so far,
     /// running on costs the rest.)
@@ -199,7 +199,7 @@ impl Claims {
         })
     }
 
-    /// Whether a pending outcome before the cell in canonical order crossed it (see
+    /// Whether a live pending outcome before the cell in canonical order crossed it (see
     /// [`Claims::probably_labelled`]).
     pub(crate) fn is_pending_claimed(&self, cell: u32) -> bool {
         self.pending_claimed[cell as usize].load(Ordering::Relaxed) && !self.is_frontier(cell)
@@ -226,7 +226,7 @@ impl Claims {
 
     /// What a stream makes of waiting `cell`: dropped when it is claimed or its orbit runs
     /// (no outcome: the coordinator leases it again if it still needs it), deferred while a
-    /// pending outcome or a running orbit before it crossed it, else started.
+    /// live pending outcome or a running orbit before it crossed it, else started.
     pub fn stream_verdict(&self, grid: &Grid, cell: u32) -> Verdict {
         if self.is_claimed(cell) || self.is_running(cell) {
             Verdict::Drop
@@ -268,7 +268,7 @@ impl Claims {
 /// prefix of the coordinator's: its labels are certain and its frontier is at or before the
 /// coordinator's (a cell there is the frontier, or committed with its own orbit), and the
 /// streams use them as the embedded engine does — the frontier orbit's crossings claim cells
-/// at once, and orbits crossed by a pending outcome are abandoned — instead of waiting for
+/// at once, and orbits crossed by a live pending outcome are abandoned — instead of waiting for
 /// the coordinator's skips. Full mode labels no crossed cell, so there it keeps only the
 /// coordinator's claims.
 pub struct LocalLedger {

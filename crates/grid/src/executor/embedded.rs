@@ -111,7 +111,7 @@ impl Engine<'_, '_> {
             return Needed::Done;
         }
         let (claims, grid) = (self.claims, self.grid);
-        // A cell crossed by an earlier running orbit or an earlier pending outcome will be
+        // A cell crossed by an earlier running orbit or an earlier live pending outcome will be
         // labelled by it unless that orbit is dropped: take other cells first. The frontier
         // cell is never skipped (nothing before it runs), so this cannot stall.
         let busy = |c: u32| {
