@@ -391,7 +391,9 @@ impl Ledger {
             if self.is_labelled(cell) {
                 if let Some(p) = self.pending.remove(&pos) {
                     self.flags[cell as usize] &= !PENDING;
-                    self.release_claims(&p, pos);
+                    if p.live {
+                        self.release(&p.outcome.visited, pos);
+                    }
                     self.dropped += 1;
                     self.dropped_steps = self.dropped_steps.saturating_add(p.outcome.steps);
                 }
@@ -404,21 +406,16 @@ impl Ledger {
             self.flags[cell as usize] &= !PENDING;
             // Labels first: the claims it releases then fall on labelled cells, which reopen
             // nothing.
-            let claims = p.live.then(|| p.outcome.visited.clone());
             self.commit(p.outcome);
-            if let Some(visited) = claims {
+            if p.live {
+                let last = self.committed.len() - 1;
+                let visited = std::mem::take(&mut self.committed[last].visited);
                 self.release(&visited, pos);
+                self.committed[last].visited = visited;
             }
             self.next += 1;
         }
         self.relive();
-    }
-
-    /// Takes back the claims of the pending outcome `p` at `pos`, if it is live.
-    fn release_claims(&mut self, p: &Pending, pos: usize) {
-        if p.live {
-            self.release(&p.outcome.visited, pos);
-        }
     }
 
     /// Takes back the claims of a live outcome at `pos` that crossed `visited`; an unlabelled
