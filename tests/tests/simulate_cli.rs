@@ -50,8 +50,39 @@ fn simulate_writes_its_table_and_plot_and_refuses_bad_flags() {
         "simulate.csv",
         "simulate.json",
         "speedup.png",
+        "timeline.csv",
     ] {
         assert!(out.join(f).is_file(), "{f}");
+    }
+    // The timeline: samples of both worker counts in time order, ending with every cell
+    // labelled and nothing leased or wanted.
+    let timeline = std::fs::read_to_string(out.join("timeline.csv")).unwrap();
+    let mut lines = timeline.lines();
+    assert_eq!(
+        lines.next(),
+        Some(
+            "workers,t_s,running_orbits,busy_threads,committed_orbits,resolved_cells,\
+             wanted_cells,leased_cells"
+        )
+    );
+    let rows: Vec<Vec<f64>> = lines
+        .map(|l| l.split(',').map(|v| v.parse().unwrap()).collect())
+        .collect();
+    for w in [1.0, 3.0] {
+        let of_w: Vec<&Vec<f64>> = rows.iter().filter(|r| r[0] == w).collect();
+        assert!(of_w.len() > 2, "{w} workers: {} samples", of_w.len());
+        assert!(of_w.windows(2).all(|p| p[0][1] < p[1][1]), "time order");
+        assert!(
+            of_w.windows(2).all(|p| p[0][4] <= p[1][4]),
+            "commits only grow"
+        );
+        assert!(
+            of_w.iter().all(|r| r[2] <= 4.0 * w),
+            "at most the lanes run"
+        );
+        let last = of_w.last().unwrap();
+        assert_eq!((last[6], last[7]), (0.0, 0.0), "{w} workers end: {last:?}");
+        assert!(last[5] > 0.0 && last[5] == rows[rows.len() - 1][5]);
     }
     for (flag, value) in [
         ("--workers", "0"),

@@ -68,7 +68,7 @@ pub struct SimulateArgs {
     /// labellers: the best a forecast can do) or pilot:T (a pilot run to t_final = T).
     #[arg(long, default_value = "none")]
     forecast: String,
-    /// Write simulate.md, simulate.csv, simulate.json and speedup.png here.
+    /// Write simulate.md, simulate.csv, simulate.json, speedup.png and timeline.csv here.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Print exactly one JSON object on stdout.
@@ -249,7 +249,7 @@ pub fn simulate(args: SimulateArgs) -> CliResult<()> {
         &summary,
         &table,
         args.out.as_deref(),
-        "simulate.md, simulate.csv, simulate.json, speedup.png",
+        "simulate.md, simulate.csv, simulate.json, speedup.png, timeline.csv",
     );
     Ok(())
 }
@@ -324,5 +324,31 @@ fn write_outputs(
         markers: true,
     };
     render_loglog_png(&plot, &dir.join("speedup.png"), 1200, 900)
-        .map_err(|e| runtime("drawing speedup.png", e))
+        .map_err(|e| runtime("drawing speedup.png", e))?;
+    write_timeline(&dir.join("timeline.csv"), points)
+}
+
+/// Every worker count's samples of the job's progress over virtual time, one row each.
+fn write_timeline(path: &Path, points: &[Point]) -> CliResult<()> {
+    let mut csv = String::from(
+        "workers,t_s,running_orbits,busy_threads,committed_orbits,resolved_cells,\
+         wanted_cells,leased_cells\n",
+    );
+    for p in points {
+        for s in &p.stats.timeline {
+            let g = &s.progress;
+            csv += &format!(
+                "{},{:.4},{},{},{},{},{},{}\n",
+                p.stats.workers,
+                s.t_s,
+                s.running_orbits,
+                s.busy_threads,
+                g.committed_orbits,
+                g.resolved_cells,
+                g.wanted_cells,
+                g.leased_cells
+            );
+        }
+    }
+    std::fs::write(path, csv).map_err(|e| runtime(&format!("writing {}", path.display()), e))
 }

@@ -362,6 +362,19 @@ impl Run {
     }
 }
 
+/// Where a job's runs stand, summed over its runs ([`Scheduler::progress`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Progress {
+    /// Orbits whose outcomes the ledgers committed.
+    pub committed_orbits: usize,
+    /// Cells labelled.
+    pub resolved_cells: usize,
+    /// Fast PSS: cells that need their own orbit now (see [`Ledger::wants`]).
+    pub wanted_cells: usize,
+    /// Cells of the leases out.
+    pub leased_cells: usize,
+}
+
 /// Every job, worker and lease the coordinator knows, with the store behind it.
 pub struct Scheduler {
     store: StoreThread,
@@ -1287,6 +1300,30 @@ impl Scheduler {
             }
         }
         Ok(job.state.as_str().to_string())
+    }
+
+    /// Where a job's runs stand together (a simulation's timeline samples it): `None` for a
+    /// job not held in memory.
+    pub fn progress(&self, id: u64) -> Option<Progress> {
+        let job = self.jobs.get(&id)?;
+        let mut p = Progress::default();
+        for run in &job.runs {
+            p.committed_orbits += run.ledger.committed.len();
+            p.resolved_cells += run.ledger.resolved();
+            if run.ledger.mode() == salient_grid::Mode::FastPss && !run.done {
+                p.wanted_cells += run.grid.canonical()[run.ledger.frontier()..]
+                    .iter()
+                    .filter(|&&c| run.ledger.wants(c))
+                    .count();
+            }
+            p.leased_cells += run
+                .tiles
+                .iter()
+                .filter_map(|t| t.lease.as_ref())
+                .map(|l| l.cells.len())
+                .sum::<usize>();
+        }
+        Some(p)
     }
 
     pub fn workers(&self) -> u32 {

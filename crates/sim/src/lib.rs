@@ -14,7 +14,7 @@ mod worker;
 mod world;
 
 use prost::Message;
-use salient_coordinator::scheduler::{Config, Scheduler};
+use salient_coordinator::scheduler::{Config, Progress, Scheduler};
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::{executor, Forecast, Grid, Ledger, Mode};
 use salient_proto::{v1, PROTOCOL_VERSION};
@@ -137,7 +137,30 @@ pub struct RunStats {
     pub reply_bytes: u64,
     /// Of the replies: relayed outcomes.
     pub relay_bytes: u64,
+    /// Samples of the job's progress over virtual time (written to timeline.csv, not to the
+    /// table's JSON).
+    #[serde(skip)]
+    pub timeline: Vec<Sample>,
 }
+
+/// The state of a simulated job at one moment: where a run that scales badly stalls shows as
+/// lanes idle while the committed orbits stand still.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Sample {
+    /// Virtual seconds since the workers started.
+    pub t_s: f64,
+    pub running_orbits: usize,
+    /// Threads busy: computing, or in either side's network stack.
+    pub busy_threads: usize,
+    pub progress: Progress,
+}
+
+/// Samples a timeline keeps at most: when full, every other one goes and the interval doubles,
+/// so a run of any length leaves between half and all of them.
+const TIMELINE_SAMPLES: usize = 2000;
+
+/// The first interval between timeline samples, virtual nanoseconds.
+const FIRST_SAMPLE_NS: u64 = 1_000_000;
 
 /// What the sequential rule integrates: every cell's own orbit in canonical order unless an
 /// earlier orbit labelled it.
@@ -368,8 +391,19 @@ impl Simulation {
             },
         };
         let stall_ns = (self.params.stall_s * 1e9) as u64;
+        let (mut next_sample, mut sample_ns) = (0, FIRST_SAMPLE_NS);
         let stack_half = self.params.coordinator_stack_ns as f64 / 2.0;
         while let Some(event) = world.pop() {
+            if world.now >= next_sample {
+                let timeline = &mut coordinator.stats.timeline;
+                if timeline.len() == TIMELINE_SAMPLES {
+                    let kept: Vec<Sample> = timeline.iter().step_by(2).copied().collect();
+                    *timeline = kept;
+                    sample_ns *= 2;
+                }
+                timeline.push(sample(scheduler, job, &ws, world));
+                next_sample = world.now + sample_ns;
+            }
             match event {
                 Event::Send { worker, gen } => {
                     let w = &mut ws[worker];
@@ -436,6 +470,10 @@ impl Simulation {
                 Event::Force { worker, gen } => ws[worker].on_force(world, gen),
             }
         }
+        coordinator
+            .stats
+            .timeline
+            .push(sample(scheduler, job, &ws, world));
         totals(coordinator, &ws)
     }
 
@@ -564,6 +602,16 @@ impl Simulation {
             points.push(point);
         }
         Ok(points)
+    }
+}
+
+/// The job's state now, for the timeline.
+fn sample(scheduler: &Scheduler, job: u64, ws: &[SimWorker], world: &World) -> Sample {
+    Sample {
+        t_s: world.now as f64 * 1e-9,
+        running_orbits: ws.iter().map(SimWorker::running_orbits).sum(),
+        busy_threads: world.busy(),
+        progress: scheduler.progress(job).unwrap_or_default(),
     }
 }
 

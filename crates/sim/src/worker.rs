@@ -155,6 +155,11 @@ impl SimWorker {
         }
     }
 
+    /// Orbits running in this worker's lanes.
+    pub fn running_orbits(&self) -> usize {
+        self.running.len()
+    }
+
     fn lanes(&self) -> usize {
         self.shape.threads * self.shape.lanes
     }

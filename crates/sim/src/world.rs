@@ -94,6 +94,11 @@ impl World {
     }
 
     /// A thread starts (`+1`) or stops (`-1`) being busy.
+    /// Threads busy now (compute, and either side's network work).
+    pub fn busy(&self) -> usize {
+        self.busy
+    }
+
     pub fn add_busy(&mut self, delta: isize) {
         self.busy = self.busy.saturating_add_signed(delta);
     }
