@@ -9,7 +9,8 @@
  * implementation of the rule, so its percentages must agree with salient's to well within the
  * noise of floating-point differences.
  *
- * Usage: fastpss TAU T_FINAL [N [TILE]]     (N×N cells, TILE×TILE tiles; defaults 400, 20)
+ * Usage: fastpss TAU T_FINAL [N]     (N×N cells, default 400, visited in a raster scan: the
+ *        grid's default canonical order, i along q2 outer, j along p2 inner)
  * Prints one line of JSON: percentages, orbits integrated, orbit-steps, seconds.
  */
 #include <math.h>
@@ -136,12 +137,12 @@ static double radicand(double q2, double p2) {
 
 int main(int argc, char **argv) {
     if (argc < 3) {
-        fprintf(stderr, "usage: %s TAU T_FINAL [N [TILE]]\n", argv[0]);
+        fprintf(stderr, "usage: %s TAU T_FINAL [N]\n", argv[0]);
         return 2;
     }
     double tau = atof(argv[1]), t_final = atof(argv[2]);
-    int n = argc > 3 ? atoi(argv[3]) : 400, tile = argc > 4 ? atoi(argv[4]) : 20;
-    if (!(tau > 0.0) || !(t_final >= tau) || n <= 0 || tile <= 0) {
+    int n = argc > 3 ? atoi(argv[3]) : 400;
+    if (!(tau > 0.0) || !(t_final >= tau) || n <= 0) {
         fprintf(stderr, "bad arguments\n");
         return 2;
     }
@@ -161,46 +162,44 @@ int main(int argc, char **argv) {
     struct timespec t0, t1;
     clock_gettime(CLOCK_MONOTONIC, &t0);
     long orbits = 0, orbit_steps = 0, counts[4] = {0, 0, 0, 0};
-    for (int ti = 0; ti < n; ti += tile)
-        for (int tj = 0; tj < n; tj += tile)
-            for (int i = ti; i < ti + tile && i < n; i++)
-                for (int j = tj; j < tj + tile && j < n; j++) {
-                    int cell = i * n + j;
-                    if (label[cell] != 0)
-                        continue;
-                    double q2 = Q2_LO + (i + 0.5) * dq, p2 = P2_LO + (j + 0.5) * dp;
-                    State s = {{0.0, q2}, {sqrt(radicand(q2, p2)), p2},
-                               {{1.0, 0.0}, {0.0, 1.0}}, {{0.0, 0.0}, {0.0, 0.0}}};
-                    double sali = sqrt(2.0);
-                    int n_crossed = 0;
-                    long k;
-                    for (k = 0; k < steps_per_orbit; k++) {
-                        State before = s;
-                        sbab2c(&s, tau, 1);
-                        if (before.q[0] < 0.0 && s.q[0] >= 0.0) {
-                            double cq2, cp2;
-                            locate(&before, tau, &cq2, &cp2);
-                            double fi = floor((cq2 - Q2_LO) / dq), fj = floor((cp2 - P2_LO) / dp);
-                            if (fi >= 0.0 && fj >= 0.0 && fi < n && fj < n)
-                                crossed[n_crossed++] = (int)fi * n + (int)fj;
-                        }
-                        sali = renormalise_sali(&s);
-                        if (sali < SALI_CHAOTIC) {
-                            k++;
-                            break;
-                        }
-                    }
-                    orbits++;
-                    orbit_steps += k;
-                    int cls = sali >= SALI_REGULAR ? 1 : sali >= SALI_CHAOTIC ? 2 : 3;
-                    label[cell] = cls;
-                    counts[cls]++;
-                    for (int c = 0; c < n_crossed; c++)
-                        if (label[crossed[c]] == 0) {
-                            label[crossed[c]] = cls;
-                            counts[cls]++;
-                        }
+    for (int i = 0; i < n; i++)
+        for (int j = 0; j < n; j++) {
+            int cell = i * n + j;
+            if (label[cell] != 0)
+                continue;
+            double q2 = Q2_LO + (i + 0.5) * dq, p2 = P2_LO + (j + 0.5) * dp;
+            State s = {{0.0, q2}, {sqrt(radicand(q2, p2)), p2},
+                       {{1.0, 0.0}, {0.0, 1.0}}, {{0.0, 0.0}, {0.0, 0.0}}};
+            double sali = sqrt(2.0);
+            int n_crossed = 0;
+            long k;
+            for (k = 0; k < steps_per_orbit; k++) {
+                State before = s;
+                sbab2c(&s, tau, 1);
+                if (before.q[0] < 0.0 && s.q[0] >= 0.0) {
+                    double cq2, cp2;
+                    locate(&before, tau, &cq2, &cp2);
+                    double fi = floor((cq2 - Q2_LO) / dq), fj = floor((cp2 - P2_LO) / dp);
+                    if (fi >= 0.0 && fj >= 0.0 && fi < n && fj < n)
+                        crossed[n_crossed++] = (int)fi * n + (int)fj;
                 }
+                sali = renormalise_sali(&s);
+                if (sali < SALI_CHAOTIC) {
+                    k++;
+                    break;
+                }
+            }
+            orbits++;
+            orbit_steps += k;
+            int cls = sali >= SALI_REGULAR ? 1 : sali >= SALI_CHAOTIC ? 2 : 3;
+            label[cell] = cls;
+            counts[cls]++;
+            for (int c = 0; c < n_crossed; c++)
+                if (label[crossed[c]] == 0) {
+                    label[crossed[c]] = cls;
+                    counts[cls]++;
+                }
+        }
     clock_gettime(CLOCK_MONOTONIC, &t1);
     double secs = (t1.tv_sec - t0.tv_sec) + 1e-9 * (t1.tv_nsec - t0.tv_nsec);
     printf("{\"tau\":%g,\"t_final\":%g,\"cells\":%d,\"compatible\":%ld,"

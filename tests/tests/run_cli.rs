@@ -41,6 +41,59 @@ fn cells_csv_is_byte_identical_for_one_and_two_threads() {
     assert_eq!(csv[0], csv[1]);
 }
 
+/// The tile is a unit of work only: cutting the grid into other tiles changes no byte of
+/// cells.csv, while another scan order (the grid's canonical order) changes the labels.
+#[test]
+fn the_tile_size_changes_no_byte_of_cells_csv_and_the_order_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let cells_csv = |name: &str, grid_extra: &str| {
+        let text = SMALL.replace("tile = [10, 10]", grid_extra);
+        let spec = write_spec(dir.path(), &format!("{name}.toml"), &text);
+        let out = dir.path().join(name);
+        let o = salient(&[
+            "run",
+            &spec,
+            "--threads",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+            "--json",
+        ]);
+        let run = json_stdout(&o)["runs"][0].clone();
+        let csv = std::fs::read(run_dirs(&out).remove(0).join("cells.csv")).unwrap();
+        (csv, run)
+    };
+    let (reference, run) = cells_csv("t10", "tile = [10, 10]");
+    assert!(reference.len() > 1000);
+    assert_eq!(run["order"], "q2-outer");
+    for tile in [
+        "tile = [7, 13]",
+        "tile = [40, 40]",
+        "tile = [1, 1]",
+        "tile = [3, 40]",
+    ] {
+        let name = tile.replace(|c: char| !c.is_ascii_digit(), "_");
+        assert!(
+            cells_csv(&name, tile).0 == reference,
+            "{tile} changed cells.csv"
+        );
+    }
+    let (shuffled, run) = cells_csv(
+        "shuffle",
+        "tile = [10, 10]\norder = \"shuffle\"\norder_seed = 5",
+    );
+    assert_eq!(
+        (run["order"].as_str(), run["order_seed"].as_u64()),
+        (Some("shuffle"), Some(5))
+    );
+    assert!(
+        shuffled != reference,
+        "a shuffled order labels the cells otherwise"
+    );
+    let (reversed, _) = cells_csv("reversed", "tile = [10, 10]\norder = \"p2-outer-reversed\"");
+    assert!(reversed != reference && reversed != shuffled);
+}
+
 /// In a sweep, a run with the τ and t_final of an earlier one takes that run's labellers as a
 /// forecast for scheduling (run.json names it), and its cells.csv is byte for byte that of the
 /// same run alone.

@@ -11,7 +11,7 @@ use rayon::prelude::*;
 use salient_core::orbit::{Class, Status};
 use salient_grid::{
     process_cpu_seconds, run_embedded_forecast, takes_forecast, CellRun, Counts, Forecast, Grid,
-    Ledger, Mode,
+    Ledger, Mode, ScanOrder,
 };
 use salient_report::{
     render_grey_map_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LogLogPlot, Table,
@@ -501,6 +501,8 @@ fn run_json(r: &RunResult) -> Value {
         "t_final": r.spec.t_final,
         "mode": match r.ledger.mode() { Mode::FastPss => "fast-pss", Mode::Full => "full" },
         "cells": [r.grid.n_q2, r.grid.n_p2],
+        "order": r.grid.order.name(),
+        "order_seed": match r.grid.order { ScanOrder::Shuffle(seed) => Some(seed), _ => None },
         "compatible": c.compatible,
         "percent": { "regular": reg, "sticky": st, "chaotic": ch, "escaped": c.percent_escaped(), "unclassified": c.percent_unclassified() },
         "counts": { "regular": c.regular, "sticky": c.sticky, "chaotic": c.chaotic, "escaped": c.escaped, "unclassified": c.unclassified },

@@ -291,7 +291,9 @@ impl Run {
         let mut deferred = false;
         let cells = self
             .grid
-            .tile_compatible_cells(t)
+            .tile_cells(t)
+            .iter()
+            .copied()
             .filter(|&c| self.ledger.wants(c))
             .filter(|&c| {
                 let defers = self
@@ -645,7 +647,7 @@ impl Scheduler {
             for o in &r.outcomes {
                 let checked = outcome_from_wire(o, &run.grid, run.checkpoints)
                     .map_err(Status::invalid_argument)?;
-                if run.grid.tile_of(checked.cell) != lease.tile as usize {
+                if run.grid.tile_of(checked.cell) != Some(lease.tile as usize) {
                     return Err(Status::invalid_argument(format!(
                         "outcome.cell {} is not in tile {}",
                         o.cell, lease.tile
@@ -839,11 +841,8 @@ impl Scheduler {
                 if run.done {
                     continue;
                 }
-                let first = run
-                    .grid
-                    .canonical()
-                    .get(run.ledger.frontier())
-                    .map_or(0, |&c| run.grid.tile_of(c));
+                // Tiles are runs of the canonical order: the frontier's is this one.
+                let first = run.ledger.frontier() / run.grid.tile_size();
                 // Speculation beyond the frontier's tile is bounded (see WINDOW_TILES_MIN):
                 // further cells are likely to be labelled meanwhile, and scanning the whole
                 // grid on every poll of an idle worker costs the coordinator more CPU than the

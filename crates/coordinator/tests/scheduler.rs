@@ -462,7 +462,7 @@ fn malformed_reports_are_refused_and_change_nothing() {
         .canonical()
         .iter()
         .copied()
-        .find(|&c| spec.grid().tile_of(c) != tile.tile as usize)
+        .find(|&c| spec.grid().tile_of(c) != Some(tile.tile as usize))
         .unwrap();
     let with = |f: &dyn Fn(&mut v1::TileReport)| {
         let mut r = good.clone();

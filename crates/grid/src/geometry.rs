@@ -3,6 +3,95 @@
 use salient_core::section::{p1_squared, CellLattice};
 use salient_core::HenonHeiles;
 
+/// The order in which fast PSS walks the grid's compatible cells: a property of the grid alone,
+/// never of its tiles (tiles are units of work, and cutting the grid differently must not
+/// change a label). Cell (i, j) has i along q2 and j along p2.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ScanOrder {
+    /// A raster scan with q2 outer: i = 0, 1, … and, inside each, j = 0, 1, … (the cells'
+    /// index order).
+    #[default]
+    Q2Outer,
+    /// A raster scan with p2 outer: j outer, i inner.
+    P2Outer,
+    /// [`ScanOrder::Q2Outer`] backwards.
+    Q2OuterReversed,
+    /// [`ScanOrder::P2Outer`] backwards.
+    P2OuterReversed,
+    /// A permutation of [`ScanOrder::Q2Outer`] drawn from this seed (Fisher–Yates over
+    /// splitmix64: the same seed gives the same order on every machine).
+    Shuffle(u64),
+}
+
+impl ScanOrder {
+    /// The spec's names of the orders (a shuffle takes its seed from `grid.order_seed`).
+    pub const NAMES: [&'static str; 5] = [
+        "q2-outer",
+        "p2-outer",
+        "q2-outer-reversed",
+        "p2-outer-reversed",
+        "shuffle",
+    ];
+
+    /// The order the spec names, with the seed a shuffle draws from.
+    pub fn from_name(name: &str, seed: u64) -> Option<ScanOrder> {
+        Some(match name {
+            "q2-outer" => ScanOrder::Q2Outer,
+            "p2-outer" => ScanOrder::P2Outer,
+            "q2-outer-reversed" => ScanOrder::Q2OuterReversed,
+            "p2-outer-reversed" => ScanOrder::P2OuterReversed,
+            "shuffle" => ScanOrder::Shuffle(seed),
+            _ => return None,
+        })
+    }
+
+    /// The spec's name of the order.
+    pub fn name(self) -> &'static str {
+        match self {
+            ScanOrder::Q2Outer => Self::NAMES[0],
+            ScanOrder::P2Outer => Self::NAMES[1],
+            ScanOrder::Q2OuterReversed => Self::NAMES[2],
+            ScanOrder::P2OuterReversed => Self::NAMES[3],
+            ScanOrder::Shuffle(_) => Self::NAMES[4],
+        }
+    }
+
+    /// The compatible cells of an `n_q2 × n_p2` grid (`compatible[cell]`) in this order.
+    fn arrange(self, n_q2: usize, n_p2: usize, compatible: &[bool]) -> Vec<u32> {
+        let index = |i: usize, j: usize| (i * n_p2 + j) as u32;
+        let q2_outer = || (0..n_q2).flat_map(move |i| (0..n_p2).map(move |j| index(i, j)));
+        let p2_outer = || (0..n_p2).flat_map(move |j| (0..n_q2).map(move |i| index(i, j)));
+        let keep = |c: &u32| compatible[*c as usize];
+        match self {
+            ScanOrder::Q2Outer => q2_outer().filter(keep).collect(),
+            ScanOrder::P2Outer => p2_outer().filter(keep).collect(),
+            ScanOrder::Q2OuterReversed => q2_outer().filter(keep).rev().collect(),
+            ScanOrder::P2OuterReversed => p2_outer().filter(keep).rev().collect(),
+            ScanOrder::Shuffle(seed) => {
+                let mut cells: Vec<u32> = q2_outer().filter(keep).collect();
+                let mut state = seed;
+                for k in (1..cells.len()).rev() {
+                    let r = splitmix64(&mut state);
+                    // The multiply-shift maps r to 0..=k without a division; its bias is below
+                    // 2^-32 for any grid Salient accepts.
+                    let pick = ((r as u128 * (k as u128 + 1)) >> 64) as usize;
+                    cells.swap(k, pick);
+                }
+                cells
+            }
+        }
+    }
+}
+
+/// The next number of the splitmix64 sequence from `state`.
+fn splitmix64(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
 /// A rectangular grid over (q2, p2) with its compatible cells in canonical order.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Grid {
@@ -11,21 +100,22 @@ pub struct Grid {
     pub n_p2: usize,
     pub q2: (f64, f64),
     pub p2: (f64, f64),
-    /// Tile size in cells along q2 and p2.
+    /// The spec's tile: a unit of work of `tile.0 × tile.1` cells ([`Grid::tile_count`]).
     pub tile: (usize, usize),
+    pub order: ScanOrder,
     compatible: Vec<bool>,
     /// [`Grid::spacing`], computed once: the cell of every crossing divides by it.
     step: (f64, f64),
-    /// Compatible cells in canonical order: tiles in raster order (q2 tile index outer), and
-    /// cells inside a tile in raster order (i outer, j inner).
+    /// Compatible cells in canonical order ([`Grid::order`]).
     canonical: Vec<u32>,
     /// Canonical position of each compatible cell (u32::MAX for the others).
     position: Vec<u32>,
 }
 
 impl Grid {
-    /// A grid of `n_q2 × n_p2` cells over the given bounds, split into tiles of `tile` cells.
-    /// A cell is compatible when its centre lies on the section (p1² > 0).
+    /// A grid of `n_q2 × n_p2` cells over the given bounds, split into tiles of `tile` cells,
+    /// in the default canonical order. A cell is compatible when its centre lies on the section
+    /// (p1² > 0).
     pub fn new(
         energy: f64,
         n_q2: usize,
@@ -33,6 +123,19 @@ impl Grid {
         q2: (f64, f64),
         p2: (f64, f64),
         tile: (usize, usize),
+    ) -> Self {
+        Self::with_order(energy, n_q2, n_p2, q2, p2, tile, ScanOrder::default())
+    }
+
+    /// [`Grid::new`] walked in `order`.
+    pub fn with_order(
+        energy: f64,
+        n_q2: usize,
+        n_p2: usize,
+        q2: (f64, f64),
+        p2: (f64, f64),
+        tile: (usize, usize),
+        order: ScanOrder,
     ) -> Self {
         assert!(n_q2 > 0 && n_p2 > 0 && tile.0 > 0 && tile.1 > 0);
         assert!(n_q2 * n_p2 <= u32::MAX as usize / 2);
@@ -43,6 +146,7 @@ impl Grid {
             q2,
             p2,
             tile,
+            order,
             step: ((q2.1 - q2.0) / n_q2 as f64, (p2.1 - p2.0) / n_p2 as f64),
             compatible: vec![false; n_q2 * n_p2],
             canonical: Vec::new(),
@@ -52,16 +156,9 @@ impl Grid {
             let (x, y) = g.centre(cell as u32);
             g.compatible[cell] = p1_squared(&HenonHeiles, energy, &[0.0, x], &[0.0, y]) > 0.0;
         }
-        for ti in 0..n_q2.div_ceil(tile.0) {
-            for tj in 0..n_p2.div_ceil(tile.1) {
-                let cells: Vec<u32> = g.tile_cells(ti, tj).collect();
-                for cell in cells {
-                    if g.compatible[cell as usize] {
-                        g.position[cell as usize] = g.canonical.len() as u32;
-                        g.canonical.push(cell);
-                    }
-                }
-            }
+        g.canonical = order.arrange(n_q2, n_p2, &g.compatible);
+        for (pos, &cell) in g.canonical.iter().enumerate() {
+            g.position[cell as usize] = pos as u32;
         }
         g
     }
@@ -155,42 +252,29 @@ impl Grid {
         (p != u32::MAX).then_some(p as usize)
     }
 
-    /// Number of tiles along q2 and p2.
-    pub fn tiles(&self) -> (usize, usize) {
-        (
-            self.n_q2.div_ceil(self.tile.0),
-            self.n_p2.div_ceil(self.tile.1),
-        )
+    /// Cells in a tile: `tile.0 × tile.1`.
+    pub fn tile_size(&self) -> usize {
+        self.tile.0 * self.tile.1
     }
 
-    /// Number of tiles; a tile's index counts them in raster order (q2 tile index outer), the
-    /// order in which the canonical order visits them.
+    /// Number of tiles. A tile is a unit of work: [`Grid::tile_size`] consecutive compatible
+    /// cells of the canonical order (the last one may hold fewer), numbered along the order.
+    /// Cutting the order, not the plane, keeps a lease's cells next to each other in the
+    /// order fast PSS commits in, whatever the order.
     pub fn tile_count(&self) -> usize {
-        let (a, b) = self.tiles();
-        a * b
+        self.canonical.len().div_ceil(self.tile_size())
     }
 
-    /// The index of the tile holding `cell`.
-    pub fn tile_of(&self, cell: u32) -> usize {
-        let (i, j) = self.ij(cell);
-        (i / self.tile.0) * self.tiles().1 + j / self.tile.1
+    /// The index of the tile holding a compatible cell.
+    pub fn tile_of(&self, cell: u32) -> Option<usize> {
+        self.position(cell).map(|p| p / self.tile_size())
     }
 
-    /// The compatible cells of tile `index`, in canonical order.
-    pub fn tile_compatible_cells(&self, index: usize) -> impl Iterator<Item = u32> + '_ {
-        let nj = self.tiles().1;
-        self.tile_cells(index / nj, index % nj)
-            .filter(|&c| self.is_compatible(c))
-    }
-
-    /// The cells of tile (ti, tj) in raster order (compatible or not).
-    pub fn tile_cells(&self, ti: usize, tj: usize) -> impl Iterator<Item = u32> + '_ {
-        let (i0, j0) = (ti * self.tile.0, tj * self.tile.1);
-        let (i1, j1) = (
-            (i0 + self.tile.0).min(self.n_q2),
-            (j0 + self.tile.1).min(self.n_p2),
-        );
-        (i0..i1).flat_map(move |i| (j0..j1).map(move |j| self.index(i, j)))
+    /// The cells of tile `index`, in canonical order.
+    pub fn tile_cells(&self, index: usize) -> &[u32] {
+        let size = self.tile_size();
+        let start = (index * size).min(self.canonical.len());
+        &self.canonical[start..(start + size).min(self.canonical.len())]
     }
 }
 
@@ -284,33 +368,89 @@ mod tests {
         assert_eq!(paper_grid().compatible_count(), 121_548);
     }
 
+    /// The compatible cells of `g` in index order (q2 outer, p2 inner).
+    fn compatible_in_index_order(g: &Grid) -> Vec<u32> {
+        (0..g.cells() as u32)
+            .filter(|&c| g.is_compatible(c))
+            .collect()
+    }
+
     #[test]
-    fn canonical_order_is_tile_major_then_raster() {
-        let g = Grid::new(0.125, 5, 4, (-0.43, 0.67), (-0.5, 0.5), (2, 3));
-        let mut all = Vec::new();
-        for ti in 0..3 {
-            for tj in 0..2 {
-                all.extend(g.tile_cells(ti, tj).filter(|&c| g.is_compatible(c)));
+    fn the_default_order_is_a_raster_scan_whatever_the_tiles() {
+        for tile in [(1, 1), (2, 3), (5, 4), (3, 2)] {
+            let g = Grid::new(0.125, 5, 4, (-0.43, 0.67), (-0.5, 0.5), tile);
+            assert_eq!(g.order, ScanOrder::Q2Outer);
+            assert_eq!(g.canonical(), &compatible_in_index_order(&g)[..]);
+            for (pos, &c) in g.canonical().iter().enumerate() {
+                assert_eq!(g.position(c), Some(pos));
             }
         }
-        assert_eq!(g.canonical(), &all[..]);
-        // The first tile is rows i = 0, 1 and columns j = 0..3.
-        let first: Vec<u32> = g.tile_cells(0, 0).collect();
-        assert_eq!(first, vec![0, 1, 2, 4, 5, 6]);
-        for (pos, &c) in g.canonical().iter().enumerate() {
-            assert_eq!(g.position(c), Some(pos));
+    }
+
+    #[test]
+    fn tiles_cut_the_canonical_order_into_runs_of_the_tile_size() {
+        for order in [
+            ScanOrder::Q2Outer,
+            ScanOrder::P2OuterReversed,
+            ScanOrder::Shuffle(5),
+        ] {
+            let g = Grid::with_order(0.125, 7, 6, (-0.43, 0.67), (-0.5, 0.5), (2, 3), order);
+            let n = g.compatible_count();
+            assert!(n > 6 && !n.is_multiple_of(6), "{n}: the last tile is short");
+            assert_eq!(g.tile_count(), n.div_ceil(6));
+            let joined: Vec<u32> = (0..g.tile_count())
+                .flat_map(|t| g.tile_cells(t).to_vec())
+                .collect();
+            assert_eq!(joined, g.canonical());
+            assert_eq!(g.tile_cells(g.tile_count() - 1).len(), n % 6);
+            for t in 0..g.tile_count() {
+                assert!(g.tile_cells(t).iter().all(|&c| g.tile_of(c) == Some(t)));
+            }
+            let outside = (0..g.cells() as u32)
+                .find(|&c| !g.is_compatible(c))
+                .unwrap();
+            assert_eq!(g.tile_of(outside), None);
         }
-        // Tile indices count tiles in raster order, and the tiles' compatible cells in index
-        // order are the canonical order.
-        assert_eq!(g.tile_count(), 6);
-        let by_index: Vec<u32> = (0..6).flat_map(|t| g.tile_compatible_cells(t)).collect();
-        assert_eq!(g.canonical(), &by_index[..]);
-        assert_eq!(g.tile_of(6), 0);
-        assert_eq!(g.tile_of(7), 1);
-        assert_eq!(g.tile_of(g.index(4, 3)), 5);
-        for t in 0..6 {
-            assert!(g.tile_compatible_cells(t).all(|c| g.tile_of(c) == t));
+    }
+
+    #[test]
+    fn every_scan_order_is_a_permutation_of_the_compatible_cells() {
+        let grid = |order| Grid::with_order(0.125, 7, 6, (-0.43, 0.67), (-0.5, 0.5), (3, 4), order);
+        let raster = compatible_in_index_order(&grid(ScanOrder::Q2Outer));
+        let p2_outer: Vec<u32> = (0..6)
+            .flat_map(|j| (0..7).map(move |i| (i * 6 + j) as u32))
+            .filter(|c| raster.contains(c))
+            .collect();
+        let reversed = |v: &[u32]| v.iter().rev().copied().collect::<Vec<u32>>();
+        assert_eq!(grid(ScanOrder::P2Outer).canonical(), &p2_outer[..]);
+        assert_eq!(
+            grid(ScanOrder::Q2OuterReversed).canonical(),
+            &reversed(&raster)[..]
+        );
+        assert_eq!(
+            grid(ScanOrder::P2OuterReversed).canonical(),
+            &reversed(&p2_outer)[..]
+        );
+        let shuffled = grid(ScanOrder::Shuffle(7));
+        assert_eq!(
+            shuffled.canonical(),
+            grid(ScanOrder::Shuffle(7)).canonical()
+        );
+        assert_ne!(
+            shuffled.canonical(),
+            grid(ScanOrder::Shuffle(8)).canonical()
+        );
+        assert_ne!(shuffled.canonical(), &raster[..]);
+        let mut sorted = shuffled.canonical().to_vec();
+        sorted.sort_unstable();
+        assert_eq!(sorted, raster);
+        for (pos, &c) in shuffled.canonical().iter().enumerate() {
+            assert_eq!(shuffled.position(c), Some(pos));
         }
+        for name in ScanOrder::NAMES {
+            assert_eq!(ScanOrder::from_name(name, 3).unwrap().name(), name);
+        }
+        assert_eq!(ScanOrder::from_name("spiral", 3), None);
     }
 
     #[test]

@@ -7,7 +7,7 @@
 //! without saying where in a JSON document; walking by hand names `grid.cells[1]`.
 
 use crate::executor::CellRun;
-use crate::geometry::Grid;
+use crate::geometry::{Grid, ScanOrder};
 use salient_core::adaptive::Protocol;
 use salient_core::orbit::{Deviation, OrbitConfig, Thresholds};
 use salient_core::run::MethodRun;
@@ -39,7 +39,10 @@ pub const SCHEMA: &[(&str, &[&str])] = &[
         &["name", "system", "grid", "sweep", "integration", "classify"],
     ),
     ("system", &["kind", "energy"]),
-    ("grid", &["cells", "tile", "mode", "q2", "p2"]),
+    (
+        "grid",
+        &["cells", "tile", "mode", "q2", "p2", "order", "order_seed"],
+    ),
     ("sweep", &["method", "tau", "t_final", "delta"]),
     ("integration", &["protocol", "deviation", "seed"]),
     (
@@ -67,6 +70,8 @@ pub struct GridSpec {
     pub mode: Mode,
     pub q2_range: (f64, f64),
     pub p2_range: (f64, f64),
+    /// The canonical order fast PSS walks the cells in.
+    pub order: ScanOrder,
 }
 
 /// One member of the sweep (the Cartesian product method × tau × t_final × delta; delta only
@@ -103,13 +108,14 @@ impl JobSpec {
     /// The section grid every run of the job covers.
     pub fn grid(&self) -> Grid {
         let g = &self.grid;
-        Grid::new(
+        Grid::with_order(
             self.energy,
             g.n_q2,
             g.n_p2,
             g.q2_range,
             g.p2_range,
             (g.tile_q2, g.tile_p2),
+            g.order,
         )
     }
 
@@ -161,6 +167,8 @@ struct RawGrid {
     mode: Option<String>,
     q2: Option<Vec<f64>>,
     p2: Option<Vec<f64>>,
+    order: Option<String>,
+    order_seed: Option<u64>,
 }
 
 #[derive(Serialize)]
@@ -479,6 +487,8 @@ fn read_raw(v: &Value) -> SpecResult<RawSpec> {
             mode: grid.opt("mode", string)?,
             q2: grid.opt_list("q2", number)?,
             p2: grid.opt_list("p2", number)?,
+            order: grid.opt("order", string)?,
+            order_seed: grid.opt("order_seed", seed)?,
         },
         sweep: RawSweep {
             method: sweep.req_list("method", string)?,
@@ -661,6 +671,23 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
             )))
         }
     };
+    let order_name = g.order.as_deref().unwrap_or(ScanOrder::default().name());
+    let order = ScanOrder::from_name(order_name, g.order_seed.unwrap_or(1)).ok_or_else(|| {
+        usage(format!(
+            "grid.order must be one of {} (got {order_name:?})",
+            ScanOrder::NAMES
+                .iter()
+                .map(|n| format!("{n:?}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ))
+    })?;
+    if g.order_seed.is_some() && !matches!(order, ScanOrder::Shuffle(_)) {
+        warnings.push(format!(
+            "grid.order_seed is ignored with grid.order = {:?}",
+            order.name()
+        ));
+    }
     let (dq, dp) = default_bounds(energy);
     let q2_range = range("grid.q2", &g.q2, dq, energy)?;
     let p2_range = range("grid.p2", &g.p2, dp, energy)?;
@@ -853,6 +880,7 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
             mode,
             q2_range,
             p2_range,
+            order,
         },
         runs,
         protocol,
@@ -1031,6 +1059,22 @@ t_final = [1e3]
         )
         .unwrap();
         assert_eq!(j.deviation, Deviation::Random { seed: 1 });
+        // The default order is the raster scan; a shuffle without a seed uses seed 1.
+        assert_eq!(j.grid.order, ScanOrder::Q2Outer);
+        let j = parse(
+            &MINIMAL.replace("[grid]", "[grid]\norder = \"shuffle\""),
+            false,
+        )
+        .unwrap();
+        assert_eq!(j.grid.order, ScanOrder::Shuffle(1));
+        assert_eq!(j.grid().order, ScanOrder::Shuffle(1));
+        let text = MINIMAL.replace("[grid]", "[grid]\norder = \"p2-outer\"\norder_seed = 4");
+        let j = parse(&text, false).unwrap();
+        assert_eq!(j.grid.order, ScanOrder::P2Outer);
+        assert_eq!(
+            j.warnings,
+            ["grid.order_seed is ignored with grid.order = \"p2-outer\""]
+        );
     }
 
     #[test]
@@ -1103,7 +1147,7 @@ t_final = [1e3]
             ),
             (
                 GOOD.replace("mode = \"full\"", "mode = \"full\"\nfoo = 1"),
-                "unknown field 'foo' in [grid] (allowed: cells, tile, mode, q2, p2)",
+                "unknown field 'foo' in [grid] (allowed: cells, tile, mode, q2, p2, order, order_seed)",
             ),
             (
                 GOOD.replace("energy = 0.125", "energy = nan"),
@@ -1185,6 +1229,16 @@ t_final = [1e3]
             ),
             ("tile = [10, 10]", "tile = [0, 10]", "grid.tile[0]"),
             ("mode = \"full\"", "mode = \"half\"", "grid.mode"),
+            (
+                "mode = \"full\"",
+                "mode = \"full\"\norder = \"spiral\"",
+                "grid.order must be one of \"q2-outer\", \"p2-outer\"",
+            ),
+            (
+                "mode = \"full\"",
+                "mode = \"full\"\norder_seed = -1",
+                "grid.order_seed",
+            ),
             (
                 "mode = \"full\"",
                 "mode = \"full\"\nq2 = [0.5, 0.1]",
