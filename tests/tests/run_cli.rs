@@ -18,6 +18,19 @@ tau = [0.5]
 t_final = [2e3]
 "#;
 
+/// `salient run SPEC --threads THREADS --out OUT --json`, its JSON (the run must succeed).
+fn run_json(spec: &str, threads: &str, out: &std::path::Path) -> serde_json::Value {
+    json_stdout(&salient(&[
+        "run",
+        spec,
+        "--threads",
+        threads,
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]))
+}
+
 #[test]
 fn cells_csv_is_byte_identical_for_one_and_two_threads() {
     let dir = tempfile::tempdir().unwrap();
@@ -25,16 +38,7 @@ fn cells_csv_is_byte_identical_for_one_and_two_threads() {
     let mut csv = Vec::new();
     for threads in ["1", "2"] {
         let out = dir.path().join(format!("out{threads}"));
-        let o = salient(&[
-            "run",
-            &spec,
-            "--threads",
-            threads,
-            "--out",
-            out.to_str().unwrap(),
-            "--json",
-        ]);
-        json_stdout(&o);
+        run_json(&spec, threads, &out);
         csv.push(std::fs::read(run_dirs(&out).remove(0).join("cells.csv")).unwrap());
     }
     assert!(csv[0].len() > 1000);
@@ -50,16 +54,7 @@ fn the_tile_size_changes_no_byte_of_cells_csv_and_the_order_does() {
         let text = SMALL.replace("tile = [10, 10]", grid_extra);
         let spec = write_spec(dir.path(), &format!("{name}.toml"), &text);
         let out = dir.path().join(name);
-        let o = salient(&[
-            "run",
-            &spec,
-            "--threads",
-            "2",
-            "--out",
-            out.to_str().unwrap(),
-            "--json",
-        ]);
-        let run = json_stdout(&o)["runs"][0].clone();
+        let run = run_json(&spec, "2", &out)["runs"][0].clone();
         let csv = std::fs::read(run_dirs(&out).remove(0).join("cells.csv")).unwrap();
         (csv, run)
     };
@@ -112,15 +107,7 @@ fn a_sweep_forecast_leaves_cells_csv_unchanged() {
     for (name, text) in [("sweep", &sweep), ("alone", &alone)] {
         let spec = write_spec(dir.path(), &format!("{name}.toml"), text);
         let out = dir.path().join(name);
-        json_stdout(&salient(&[
-            "run",
-            &spec,
-            "--threads",
-            "2",
-            "--out",
-            out.to_str().unwrap(),
-            "--json",
-        ]));
+        run_json(&spec, "2", &out);
         let run = run_dirs(&out).pop().unwrap();
         let meta: serde_json::Value =
             serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
