@@ -269,6 +269,7 @@ fn table(points: &[Point]) -> Table {
         "coord busy %",
         "coord µs/outcome",
         "relay MB",
+        "frontier waits s",
     ]);
     for p in points {
         let s = &p.stats;
@@ -286,6 +287,14 @@ fn table(points: &[Point]) -> Table {
             format!("{:.1}", p.coordinator_busy_pct),
             format!("{:.1}", p.coordinator_us_per_outcome),
             format!("{:.1}", s.relay_bytes as f64 / 1e6),
+            format!(
+                "{:.2} / {:.2} / {:.2} / {:.2} / {:.2}",
+                s.frontier.unleased_s,
+                s.frontier.queued_s,
+                s.frontier.running_s,
+                s.frontier.reporting_s,
+                s.frontier.stranded_s
+            ),
         ]);
     }
     table

@@ -377,6 +377,19 @@ pub struct Progress {
     pub leased_cells: usize,
 }
 
+/// The cell at a fast-PSS run's frontier when it needs its own orbit: every commit waits for
+/// it ([`Scheduler::frontier_cell`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum FrontierCell<'a> {
+    /// No lease holds it yet.
+    Unleased(u32),
+    /// A lease of this worker holds it (queued there, or running).
+    Leased { cell: u32, worker: &'a str },
+    /// Its tile is leased without it (it was claimed, or skipped, when the lease was made):
+    /// it waits for that lease to end.
+    Stranded(u32),
+}
+
 /// Every job, worker and lease the coordinator knows, with the store behind it.
 pub struct Scheduler {
     store: StoreThread,
@@ -1323,6 +1336,33 @@ impl Scheduler {
                 .sum::<usize>();
         }
         Some(p)
+    }
+
+    /// The cell the commits of the job's first unfinished fast-PSS run wait for, when it needs
+    /// its own orbit and has no outcome yet (`None` otherwise: the frontier waits for nothing
+    /// a lease could give, or the run is done).
+    pub fn frontier_cell(&self, id: u64) -> Option<FrontierCell<'_>> {
+        let run = self
+            .jobs
+            .get(&id)?
+            .runs
+            .iter()
+            .find(|r| !r.done && r.ledger.mode() == salient_grid::Mode::FastPss)?;
+        let cell = *run.grid.canonical().get(run.ledger.frontier())?;
+        if !run.ledger.wants(cell) {
+            return None;
+        }
+        let tile = &run.tiles[run.grid.tile_of(cell)?];
+        Some(match &tile.lease {
+            None => FrontierCell::Unleased(cell),
+            Some(l) if l.cells.contains(&cell) && !l.skipped.contains(&cell) => {
+                FrontierCell::Leased {
+                    cell,
+                    worker: &l.worker,
+                }
+            }
+            Some(_) => FrontierCell::Stranded(cell),
+        })
     }
 
     pub fn workers(&self) -> u32 {

@@ -14,13 +14,13 @@ mod worker;
 mod world;
 
 use prost::Message;
-use salient_coordinator::scheduler::{Config, Progress, Scheduler};
+use salient_coordinator::scheduler::{Config, FrontierCell, Progress, Scheduler};
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::{executor, Forecast, Grid, Ledger, Mode};
 use salient_proto::{v1, PROTOCOL_VERSION};
 use salient_store::Store;
 use serde::Serialize;
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 use traces::Traces;
 pub use traces::{calibrate_step_ns, thread_cpu_ns};
 use tracing::subscriber::NoSubscriber;
@@ -137,10 +137,52 @@ pub struct RunStats {
     pub reply_bytes: u64,
     /// Of the replies: relayed outcomes.
     pub relay_bytes: u64,
+    pub frontier: FrontierWait,
     /// Samples of the job's progress over virtual time (written to timeline.csv, not to the
     /// table's JSON).
     #[serde(skip)]
     pub timeline: Vec<Sample>,
+}
+
+/// Virtual seconds the commits waited for the cell at the frontier, which needed its own orbit,
+/// by where that cell stood: the commit chain's share of the wall. A schedule that ran needed
+/// orbits early has their outcomes in before the frontier reaches them, and waits little.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct FrontierWait {
+    /// No lease held it.
+    pub unleased_s: f64,
+    /// Leased, waiting in its worker's queue (or for the lease to reach the worker).
+    pub queued_s: f64,
+    /// Its own orbit running.
+    pub running_s: f64,
+    /// Its orbit ended; the outcome is on its way (it waits for the worker's next poll).
+    pub reporting_s: f64,
+    /// Its tile leased without it (claimed or skipped when that lease was made).
+    pub stranded_s: f64,
+}
+
+impl FrontierWait {
+    fn add(
+        &mut self,
+        cell: Option<FrontierCell>,
+        ws: &[SimWorker],
+        index: &HashMap<&str, usize>,
+        ns: u64,
+    ) {
+        let s = ns as f64 * 1e-9;
+        match cell {
+            None => {}
+            Some(FrontierCell::Unleased(_)) => self.unleased_s += s,
+            Some(FrontierCell::Stranded(_)) => self.stranded_s += s,
+            Some(FrontierCell::Leased { cell, worker }) => {
+                match index.get(worker).map(|&w| ws[w].leased_cell(cell)) {
+                    Some(Some(true)) => self.running_s += s,
+                    Some(None) => self.reporting_s += s,
+                    _ => self.queued_s += s,
+                }
+            }
+        }
+    }
 }
 
 /// The state of a simulated job at one moment: where a run that scales badly stalls shows as
@@ -393,7 +435,25 @@ impl Simulation {
         let stall_ns = (self.params.stall_s * 1e9) as u64;
         let (mut next_sample, mut sample_ns) = (0, FIRST_SAMPLE_NS);
         let stack_half = self.params.coordinator_stack_ns as f64 / 2.0;
+        let ids: Vec<String> = ws.iter().map(|w| w.id.clone()).collect();
+        let index: HashMap<&str, usize> = ids
+            .iter()
+            .enumerate()
+            .map(|(i, id)| (id.as_str(), i))
+            .collect();
+        let mut last_event = 0;
         while let Some(event) = world.pop() {
+            // Where the frontier stood since the last event (nothing changes between events),
+            // from the first lease on, as the wall.
+            if coordinator.first_lease_ns.is_some() {
+                coordinator.stats.frontier.add(
+                    scheduler.frontier_cell(job),
+                    &ws,
+                    &index,
+                    world.now - last_event,
+                );
+            }
+            last_event = world.now;
             if world.now >= next_sample {
                 let timeline = &mut coordinator.stats.timeline;
                 if timeline.len() == TIMELINE_SAMPLES {
@@ -709,6 +769,25 @@ mod tests {
         assert_eq!(one.orbits_abandoned, 0);
         assert_eq!(one.steps, sequential.steps);
         assert_eq!(one.outcomes, sequential.orbits);
+    }
+
+    /// The frontier's waits account for no more than the wall. One worker with one lane runs
+    /// only the frontier's cell, so the frontier waits the whole wall (here mostly for the
+    /// outcomes of short orbits to come back); four workers wait less.
+    #[test]
+    fn the_frontier_waits_show_the_commit_chain() {
+        let mut sim = Simulation::new(&spec(40, 8), fixed(Some(1), 500_000)).unwrap();
+        let (one, four) = (sim.run(1).unwrap(), sim.run(4).unwrap());
+        let waited = |s: &RunStats| {
+            let f = s.frontier;
+            f.unleased_s + f.queued_s + f.running_s + f.reporting_s + f.stranded_s
+        };
+        for s in [&one, &four] {
+            assert!(waited(s) <= s.wall_s * 1.001, "{s:?}");
+        }
+        assert!(waited(&one) > 0.9 * one.wall_s, "{one:?}");
+        assert!(one.frontier.running_s > 0.0 && one.frontier.reporting_s > 0.0);
+        assert!(waited(&four) < waited(&one), "{one:?} {four:?}");
     }
 
     /// Lanes and workers speculate: more orbits start than the sequential rule needs, and

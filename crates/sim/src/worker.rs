@@ -115,6 +115,9 @@ pub struct SimWorker {
     held: Vec<v1::TileRef>,
     outbox: Vec<v1::TileReport>,
     partial: Vec<v1::TileReport>,
+    /// Cells whose outcomes wait for the next poll, and those the poll in flight carries.
+    unsent: HashSet<u32>,
+    sent: HashSet<u32>,
     hungry_compute: bool,
     hungry_backoff_ns: u64,
     pub in_flight: bool,
@@ -145,6 +148,8 @@ impl SimWorker {
             held: Vec::new(),
             outbox: Vec::new(),
             partial: Vec::new(),
+            unsent: HashSet::new(),
+            sent: HashSet::new(),
             hungry_compute: false,
             hungry_backoff_ns: FIRST_POLL_NS,
             in_flight: false,
@@ -152,6 +157,19 @@ impl SimWorker {
             timer_gen: 0,
             busy_threads: 0,
             totals: WorkerTotals::default(),
+        }
+    }
+
+    /// Where `cell`, leased here, stands: its orbit running (`Some(true)`), ended with an
+    /// outcome the coordinator has not yet had (`None`), or else waiting (`Some(false)`: in a
+    /// stream, or the lease on its way).
+    pub fn leased_cell(&self, cell: u32) -> Option<bool> {
+        if self.running.values().any(|r| r.cell == cell) {
+            Some(true)
+        } else if self.unsent.contains(&cell) || self.sent.contains(&cell) {
+            None
+        } else {
+            Some(false)
         }
     }
 
@@ -213,6 +231,7 @@ impl SimWorker {
         self.collect_partial();
         self.totals.polls += 1;
         self.in_flight = true;
+        self.sent = std::mem::take(&mut self.unsent);
         v1::PollRequest {
             worker_id: self.id.clone(),
             free_slots: self.free_slots() as u32,
@@ -244,6 +263,7 @@ impl SimWorker {
     /// The coordinator's reply arrived.
     pub fn on_reply(&mut self, world: &mut World, reply: v1::PollReply) -> Result<(), String> {
         self.in_flight = false;
+        self.sent.clear();
         for skip in &reply.skips {
             if let Some(l) = skip.lease {
                 if let Some(r) = self.runs.get(&l.run) {
@@ -586,6 +606,7 @@ impl SimWorker {
         self.count_busy(world);
         self.totals.orbits_finished += 1;
         self.totals.steps += steps;
+        self.unsent.insert(r.cell);
         self.end_entry(world, r.lease, Some(outcome), steps);
         self.settle(world);
     }
