@@ -24,7 +24,7 @@ use std::collections::{HashMap, VecDeque};
 use traces::Traces;
 pub use traces::{calibrate_step_ns, thread_cpu_ns};
 use tracing::subscriber::NoSubscriber;
-use worker::{Shape, SimWorker, FIRST_POLL_NS};
+use worker::{LeasedCell, Shape, SimWorker, FIRST_POLL_NS};
 use world::{Event, World};
 
 /// Where the coordinator's forecast of each cell's labeller comes from.
@@ -175,10 +175,11 @@ impl FrontierWait {
             Some(FrontierCell::Unleased(_)) => self.unleased_s += s,
             Some(FrontierCell::Stranded(_)) => self.stranded_s += s,
             Some(FrontierCell::Leased { cell, worker }) => {
-                match index.get(worker).map(|&w| ws[w].leased_cell(cell)) {
-                    Some(Some(true)) => self.running_s += s,
-                    Some(None) => self.reporting_s += s,
-                    _ => self.queued_s += s,
+                let at = index.get(worker).map(|&w| ws[w].leased_cell(cell));
+                match at.unwrap_or(LeasedCell::Waiting) {
+                    LeasedCell::Waiting => self.queued_s += s,
+                    LeasedCell::Running => self.running_s += s,
+                    LeasedCell::Reporting => self.reporting_s += s,
                 }
             }
         }

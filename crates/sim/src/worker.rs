@@ -84,6 +84,16 @@ struct Running {
     claimed_all: bool,
 }
 
+/// Where a leased cell stands at its worker ([`SimWorker::leased_cell`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LeasedCell {
+    /// In a stream, or its lease on the way.
+    Waiting,
+    Running,
+    /// Its orbit ended; the coordinator has not had the outcome yet.
+    Reporting,
+}
+
 /// Totals of one simulated worker.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct WorkerTotals {
@@ -160,16 +170,14 @@ impl SimWorker {
         }
     }
 
-    /// Where `cell`, leased here, stands: its orbit running (`Some(true)`), ended with an
-    /// outcome the coordinator has not yet had (`None`), or else waiting (`Some(false)`: in a
-    /// stream, or the lease on its way).
-    pub fn leased_cell(&self, cell: u32) -> Option<bool> {
+    /// Where `cell`, leased here, stands.
+    pub fn leased_cell(&self, cell: u32) -> LeasedCell {
         if self.running.values().any(|r| r.cell == cell) {
-            Some(true)
+            LeasedCell::Running
         } else if self.unsent.contains(&cell) || self.sent.contains(&cell) {
-            None
+            LeasedCell::Reporting
         } else {
-            Some(false)
+            LeasedCell::Waiting
         }
     }
 
