@@ -11,6 +11,70 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// Orbits of a million steps and more tell the coordinator what they cross while they run
+/// (the coordinator counts those cells in its "run done" line); the results stay those of
+/// `salient run`.
+#[test]
+fn long_orbits_tell_their_crossings_and_change_no_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let spec = write_spec(
+        d,
+        "spec.toml",
+        r#"
+name = "crossings"
+[system]
+kind = "henon-heiles"
+energy = 0.125
+[grid]
+cells = [12, 12]
+tile = [4, 4]
+mode = "fast-pss"
+[sweep]
+method = ["tm-sbab2c"]
+tau = [0.001]
+t_final = [1e3]
+"#,
+    );
+    let (_c, url) = coordinator(d, "127.0.0.1:0", "coordinator.log");
+    let _w: Vec<Proc> = (1..=2).map(|n| worker(d, &url, n)).collect();
+    let dist = d.join("dist");
+    let out = client(
+        &[
+            "submit",
+            &spec,
+            "--wait",
+            "--json",
+            "--out",
+            dist.to_str().unwrap(),
+        ],
+        &url,
+    );
+    json_stdout(&out);
+    let emb = d.join("emb");
+    salient(&[
+        "run",
+        &spec,
+        "--threads",
+        "2",
+        "--out",
+        emb.to_str().unwrap(),
+    ]);
+    assert_same_outputs(&emb, &dist);
+    let log = std::fs::read_to_string(d.join("coordinator.log")).unwrap();
+    let done = log
+        .lines()
+        .find(|l| l.contains("run done"))
+        .expect("a run done line");
+    let said: u64 = done
+        .split_whitespace()
+        .find_map(|f| f.strip_prefix("crossings="))
+        .expect("crossings in the run done line")
+        .parse()
+        .unwrap();
+    assert!(said > 0, "{done}");
+}
+
 #[test]
 fn distributed_results_equal_salient_run_byte_for_byte() {
     let dir = tempfile::tempdir().unwrap();

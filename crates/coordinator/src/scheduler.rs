@@ -113,6 +113,9 @@ struct ActiveLease {
     cells: Vec<u32>,
     /// Cells the worker was already told to skip.
     skipped: HashSet<u32>,
+    /// Fast PSS: cells whose running orbits said what they crossed so far (see
+    /// [`Ledger::progress`]); those claims go when the lease ends.
+    running: HashSet<u32>,
 }
 
 #[derive(Default)]
@@ -194,6 +197,8 @@ struct Run {
     /// are sized by it.
     adaptive_orbits_per_thread: Option<usize>,
     tiles: Vec<Tile>,
+    /// Cells said crossed by running orbits (logged when the run is done).
+    crossings_said: u64,
     cpu_ns: u64,
     started: Option<Instant>,
     wall_s: f64,
@@ -274,6 +279,7 @@ impl Run {
                 )),
             },
             tiles: (0..grid.tile_count()).map(|_| Tile::default()).collect(),
+            crossings_said: 0,
             grid,
             cpu_ns: 0,
             started: None,
@@ -281,6 +287,43 @@ impl Run {
             done: false,
             extra_dropped_orbits: 0,
             extra_dropped_steps: 0,
+        }
+    }
+
+    /// Ends tile `t`'s lease: the claims of its orbits in progress go.
+    fn end_lease(&mut self, t: usize) -> Option<ActiveLease> {
+        let lease = self.tiles.get_mut(t)?.lease.take()?;
+        for &cell in &lease.running {
+            self.ledger.forget_progress(cell);
+        }
+        Some(lease)
+    }
+
+    /// Fast PSS: what the running orbit of `cell`, leased in `lease` to `worker`, crossed
+    /// since it last said (`stopped`: it was abandoned). Ignored unless that lease is out and
+    /// holds the cell: a hint only.
+    fn progress(&mut self, worker: &str, lease: &v1::TileRef, x: &v1::Crossings) {
+        if self.done
+            || self.ledger.mode() != salient_grid::Mode::FastPss
+            || x.cell as usize >= self.grid.cells()
+            || self.grid.tile_of(x.cell) != Some(lease.tile as usize)
+        {
+            return;
+        }
+        let Some(tile) = self.tiles.get_mut(lease.tile as usize) else {
+            return;
+        };
+        let valid = tile.valid == lease.attempt;
+        let Some(active) = tile.lease.as_mut().filter(|l| valid && l.worker == worker) else {
+            return;
+        };
+        if x.stopped {
+            active.running.remove(&x.cell);
+            self.ledger.forget_progress(x.cell);
+        } else {
+            active.running.insert(x.cell);
+            self.crossings_said += x.crossed.len() as u64;
+            self.ledger.progress(x.cell, &x.crossed);
         }
     }
 
@@ -753,7 +796,7 @@ impl Scheduler {
                 }
             }
             if r.finished && tile.lease.as_ref().is_some_and(|l| l.worker == worker) {
-                tile.lease = None;
+                run.end_lease(lease.tile as usize);
                 if run.ledger.mode() == salient_grid::Mode::FastPss {
                     let workers = &self.workers;
                     run.note_finished(key, worker, brought, |id| {
@@ -827,6 +870,7 @@ impl Scheduler {
                 regular = round2(reg),
                 sticky = round2(st),
                 chaotic = round2(ch),
+                crossings = run.crossings_said,
                 "run done"
             );
         }
@@ -914,6 +958,7 @@ impl Scheduler {
             deadline: Instant::now() + self.cfg.lease,
             cells: cells.clone(),
             skipped: HashSet::new(),
+            running: HashSet::new(),
         });
         if let Some(w) = self.workers.get_mut(worker) {
             w.leases.insert(key);
@@ -967,6 +1012,7 @@ impl Scheduler {
                         deadline,
                         cells: Vec::new(),
                         skipped: HashSet::new(),
+                        running: HashSet::new(),
                     });
                     if let Some(w) = self.workers.get_mut(worker) {
                         w.leases.insert(key);
@@ -990,13 +1036,16 @@ impl Scheduler {
             })
             .unwrap_or_default();
         for key in lost {
-            if let Some(tile) = self
+            if let Some(run) = self
                 .jobs
                 .get_mut(&key.0)
                 .and_then(|j| j.runs.get_mut(key.1 as usize))
-                .and_then(|r| r.tiles.get_mut(key.2 as usize))
             {
-                if tile.lease.as_ref().is_some_and(|l| l.worker == worker) {
+                let tile = run.tiles.get(key.2 as usize);
+                if tile
+                    .and_then(|t| t.lease.as_ref())
+                    .is_some_and(|l| l.worker == worker)
+                {
                     tracing::debug!(
                         job = key.0,
                         run = key.1,
@@ -1004,7 +1053,7 @@ impl Scheduler {
                         worker,
                         "lease never reached its worker; released"
                     );
-                    tile.lease = None;
+                    run.end_lease(key.2 as usize);
                 }
             }
             if let Some(w) = self.workers.get_mut(worker) {
@@ -1108,6 +1157,17 @@ impl Scheduler {
         let mut replies = Replies::default();
         self.apply_reports(worker, &req.reports, &mut replies)?;
         let revoked = self.renew(worker, &req.held);
+        for x in &req.crossings {
+            let Some(lease) = &x.lease else { continue };
+            if let Some(run) = self
+                .jobs
+                .get_mut(&lease.job)
+                .filter(|j| !j.state.is_terminal())
+                .and_then(|j| j.runs.get_mut(lease.run as usize))
+            {
+                run.progress(worker, lease, x);
+            }
+        }
         let mut leases = Vec::new();
         if !req.draining {
             let threads = self.workers.get(worker).map_or(1, |w| w.threads as usize);
@@ -1199,16 +1259,17 @@ impl Scheduler {
             return;
         };
         for key in w.leases {
-            if let Some(tile) = self
+            if let Some(run) = self
                 .jobs
                 .get_mut(&key.0)
                 .and_then(|j| j.runs.get_mut(key.1 as usize))
-                .and_then(|r| r.tiles.get_mut(key.2 as usize))
             {
-                if tile.lease.as_ref().is_some_and(|l| l.worker == id) {
-                    tile.lease = None;
+                let t = key.2 as usize;
+                let held = run.tiles.get(t).and_then(|tile| tile.lease.as_ref());
+                if held.is_some_and(|l| l.worker == id) {
+                    run.end_lease(t);
                     // A worker taken for lost that comes back gets it again.
-                    tile.lapsed = true;
+                    run.tiles[t].lapsed = true;
                 }
             }
         }
@@ -1245,14 +1306,19 @@ impl Scheduler {
         }
         for job in self.jobs.values_mut() {
             for (r, run) in job.runs.iter_mut().enumerate() {
-                for (t, tile) in run.tiles.iter_mut().enumerate() {
-                    if tile.lease.as_ref().is_some_and(|l| l.deadline < now) {
-                        let l = tile.lease.take().expect("checked");
-                        tile.lapsed = true;
-                        tracing::warn!(job = job.id, run = r, tile = t, attempt = tile.attempt, worker = %l.worker, "lease lapsed");
-                        if let Some(w) = self.workers.get_mut(&l.worker) {
-                            w.leases.remove(&(job.id, r as u32, t as u32));
-                        }
+                let lapsed: Vec<usize> = (0..run.tiles.len())
+                    .filter(|&t| {
+                        let lease = run.tiles[t].lease.as_ref();
+                        lease.is_some_and(|l| l.deadline < now)
+                    })
+                    .collect();
+                for t in lapsed {
+                    let l = run.end_lease(t).expect("checked");
+                    let tile = &mut run.tiles[t];
+                    tile.lapsed = true;
+                    tracing::warn!(job = job.id, run = r, tile = t, attempt = tile.attempt, worker = %l.worker, "lease lapsed");
+                    if let Some(w) = self.workers.get_mut(&l.worker) {
+                        w.leases.remove(&(job.id, r as u32, t as u32));
                     }
                 }
             }

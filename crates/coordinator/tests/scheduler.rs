@@ -278,6 +278,66 @@ fn lease_one(s: &mut Scheduler, w: &str) -> v1::Lease {
     .remove(0)
 }
 
+/// Fast PSS: what a running orbit crossed claims those cells as its outcome will: another
+/// worker holding one is told to skip it, and the claim goes when the orbit stops. Crossings
+/// of earlier cells, of a lease the worker does not hold, or of a cell outside the lease
+/// change nothing.
+#[test]
+fn a_running_orbits_crossings_keep_other_workers_off_its_cells_until_it_stops() {
+    let json = spec_json("fast-pss", r#""tm-sbab2c""#);
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    let (job, _) = s.submit(&json).unwrap();
+    let (a, b) = (register(&mut s), register(&mut s));
+    let (lease_a, lease_b) = (lease_one(&mut s, &a), lease_one(&mut s, &b));
+    let (tile_a, tile_b) = (lease_a.lease.unwrap(), lease_b.lease.unwrap());
+    assert!(tile_a.tile < tile_b.tile);
+    let (running, target) = (lease_a.cells[0], lease_b.cells[0]);
+    let poll = |s: &mut Scheduler, w: &str, held: v1::TileRef, crossings| {
+        s.poll(&v1::PollRequest {
+            worker_id: w.into(),
+            held: vec![held],
+            crossings,
+            ..Default::default()
+        })
+        .unwrap()
+    };
+    let crossing = |lease: v1::TileRef, cell: u32, crossed: Vec<u32>, stopped| v1::Crossings {
+        lease: Some(lease),
+        cell,
+        crossed,
+        stopped,
+    };
+    let skipped = |reply: &v1::PollReply| -> Vec<u32> {
+        reply.skips.iter().flat_map(|k| k.cells.clone()).collect()
+    };
+    let wanted = |s: &Scheduler| s.progress(job).unwrap().wanted_cells;
+    let before = wanted(&s);
+    // Ignored: b's orbit crossing an earlier cell; a naming b's lease; a cell not in the lease.
+    let ignored = vec![
+        crossing(tile_b, target, vec![running], false),
+        crossing(tile_b, running, vec![target], false),
+        crossing(tile_a, target, vec![lease_b.cells[1]], false),
+    ];
+    poll(&mut s, &a, tile_a, ignored.clone());
+    assert!(skipped(&poll(&mut s, &b, tile_b, ignored[..1].to_vec())).is_empty());
+    assert_eq!(wanted(&s), before);
+    poll(
+        &mut s,
+        &a,
+        tile_a,
+        vec![crossing(tile_a, running, vec![target], false)],
+    );
+    assert_eq!(wanted(&s), before - 1);
+    assert_eq!(skipped(&poll(&mut s, &b, tile_b, Vec::new())), vec![target]);
+    poll(
+        &mut s,
+        &a,
+        tile_a,
+        vec![crossing(tile_a, running, Vec::new(), true)],
+    );
+    assert_eq!(wanted(&s), before);
+}
+
 /// Fast PSS: a worker gets the outcomes other workers reported in the run it holds leases
 /// of, its own only when its mark asks for them (a ledger made afresh), continuing from the
 /// mark it sends, so a reply it lost comes again.

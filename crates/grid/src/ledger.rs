@@ -53,6 +53,9 @@ const LABELLED: u8 = 2;
 /// The cell's own outcome waits in `pending`: the coordinator's lease search asks after every
 /// cell of its window, and a flag answers without a map lookup.
 const PENDING: u8 = 4;
+/// An orbit of the cell is in progress elsewhere and said what it crossed so far
+/// ([`Ledger::progress`]).
+const RUNNING: u8 = 8;
 
 /// Per cell, how many live pending outcomes before it in canonical order crossed it. A pending
 /// outcome is live when no live pending outcome before it crossed its own cell: it is what the
@@ -113,6 +116,15 @@ struct Pending {
     live: bool,
 }
 
+/// An orbit in progress and the cells it crossed so far: it claims them as a pending outcome
+/// would (its outcome will visit them all), under the same liveness rule.
+#[derive(Clone, Debug, Default)]
+struct Partial {
+    /// A cell said twice is counted twice, and released twice.
+    visited: Vec<u32>,
+    live: bool,
+}
+
 /// Who labelled each cell in a finished fast-PSS run ([`Ledger::forecast`]), as a forecast of
 /// who will label it in a similar one: same grid, τ and t_final, another method. Integrators
 /// that agree on the orbits agree on the labellers, the costly regular orbits foremost
@@ -161,6 +173,8 @@ pub struct Ledger {
     /// Next canonical position to commit.
     next: usize,
     pending: BTreeMap<usize, Pending>,
+    /// Orbits in progress whose crossings so far were said, by canonical position.
+    running: BTreeMap<usize, Partial>,
     /// Outcomes committed, in canonical order (their checkpoints feed Fig. 7).
     pub committed: Vec<Outcome>,
     pub dropped: u64,
@@ -190,6 +204,7 @@ impl Ledger {
             resolved: 0,
             next: 0,
             pending: BTreeMap::new(),
+            running: BTreeMap::new(),
             committed: Vec::new(),
             dropped: 0,
             dropped_steps: 0,
@@ -351,6 +366,65 @@ impl Ledger {
         self.dropped_steps = self.dropped_steps.saturating_add(steps);
     }
 
+    /// Fast PSS: the orbit of `cell`, still in progress, crossed `crossed` (more of them on
+    /// each call). Until its outcome comes or [`Ledger::forget_progress`], these cells are
+    /// claimed as its outcome would claim them, so that they are not integrated meanwhile.
+    /// A scheduling hint only: labels come from outcomes alone.
+    pub fn progress(&mut self, cell: u32, crossed: &[u32]) {
+        let pos = self.position[cell as usize];
+        if self.mode != Mode::FastPss
+            || pos == u32::MAX
+            || (pos as usize) < self.next
+            || self.flags[cell as usize] & (LABELLED | PENDING) != 0
+        {
+            return;
+        }
+        let pos = pos as usize;
+        let partial = self.running.entry(pos).or_default();
+        if self.flags[cell as usize] & RUNNING == 0 {
+            self.flags[cell as usize] |= RUNNING;
+            self.recheck.push(std::cmp::Reverse(pos));
+        }
+        let fresh: Vec<u32> = crossed
+            .iter()
+            .copied()
+            .filter(|&c| {
+                self.flags
+                    .get(c as usize)
+                    .is_some_and(|f| f & COMPATIBLE != 0)
+            })
+            .collect();
+        partial.visited.extend_from_slice(&fresh);
+        if partial.live {
+            let (flags, position, recheck) = (&self.flags, &self.position, &mut self.recheck);
+            self.claims
+                .count(position, &fresh, pos, true, |c, claimed| {
+                    if claimed && flags[c as usize] & (PENDING | RUNNING) != 0 {
+                        recheck.push(std::cmp::Reverse(position[c as usize] as usize));
+                    }
+                });
+        }
+        self.relive();
+    }
+
+    /// The orbit of `cell` in progress stopped without an outcome: its claims go.
+    pub fn forget_progress(&mut self, cell: u32) {
+        if let Some(&pos) = self.position.get(cell as usize).filter(|&&p| p != u32::MAX) {
+            self.end_progress(pos as usize);
+            self.relive();
+        }
+    }
+
+    /// Removes the orbit in progress at `pos`, taking back its claims if they counted.
+    fn end_progress(&mut self, pos: usize) {
+        if let Some(p) = self.running.remove(&pos) {
+            self.flags[self.canonical[pos] as usize] &= !RUNNING;
+            if p.live {
+                self.release(&p.visited, pos);
+            }
+        }
+    }
+
     /// Accepts an outcome (any order) and commits whatever the canonical order now allows.
     pub fn offer(&mut self, outcome: Outcome) {
         let pos = self.position[outcome.cell as usize];
@@ -360,6 +434,8 @@ impl Ledger {
             outcome.cell
         );
         let pos = pos as usize;
+        // The outcome takes over from its orbit's progress.
+        self.end_progress(pos);
         if pos < self.next || self.flags[outcome.cell as usize] & (LABELLED | PENDING) != 0 {
             self.dropped += 1;
             self.dropped_steps = self.dropped_steps.saturating_add(outcome.steps);
@@ -389,6 +465,7 @@ impl Ledger {
             let cell = self.canonical[self.next];
             let pos = self.next;
             if self.is_labelled(cell) {
+                self.end_progress(pos);
                 if let Some(p) = self.pending.remove(&pos) {
                     self.flags[cell as usize] &= !PENDING;
                     if p.live {
@@ -431,7 +508,7 @@ impl Ledger {
             .count(position, visited, pos, false, |cell, claimed| {
                 if !claimed && flags[cell as usize] & LABELLED == 0 {
                     *reopened += 1;
-                    if flags[cell as usize] & PENDING != 0 {
+                    if flags[cell as usize] & (PENDING | RUNNING) != 0 {
                         recheck.push(std::cmp::Reverse(position[cell as usize] as usize));
                     }
                 }
@@ -446,27 +523,39 @@ impl Ledger {
             let cell = self.canonical[pos];
             let should =
                 self.flags[cell as usize] & LABELLED == 0 && self.claims.early[cell as usize] == 0;
-            let Some(p) = self.pending.get_mut(&pos) else {
+            let slot = match self.pending.get_mut(&pos) {
+                Some(p) => Some((&mut p.live, &mut p.outcome.visited)),
+                None => self
+                    .running
+                    .get_mut(&pos)
+                    .map(|r| (&mut r.live, &mut r.visited)),
+            };
+            let Some((live, visited)) = slot else {
                 continue;
             };
-            if p.live == should {
+            if *live == should {
                 continue;
             }
-            p.live = should;
-            let visited = std::mem::take(&mut p.outcome.visited);
+            *live = should;
+            let visited = std::mem::take(visited);
             if should {
                 let (flags, position, recheck) = (&self.flags, &self.position, &mut self.recheck);
                 self.claims
                     .count(position, &visited, pos, true, |cell, claimed| {
-                        if claimed && flags[cell as usize] & PENDING != 0 {
+                        if claimed && flags[cell as usize] & (PENDING | RUNNING) != 0 {
                             recheck.push(std::cmp::Reverse(position[cell as usize] as usize));
                         }
                     });
             } else {
                 self.release(&visited, pos);
             }
-            if let Some(p) = self.pending.get_mut(&pos) {
-                p.outcome.visited = visited;
+            match self.pending.get_mut(&pos) {
+                Some(p) => p.outcome.visited = visited,
+                None => {
+                    if let Some(r) = self.running.get_mut(&pos) {
+                        r.visited = visited;
+                    }
+                }
             }
         }
     }
@@ -480,7 +569,7 @@ impl Ledger {
         if self.mode == Mode::FastPss {
             for &v in &o.visited {
                 if self.is_unlabelled_compatible(v) {
-                    if self.flags[v as usize] & PENDING != 0 {
+                    if self.flags[v as usize] & (PENDING | RUNNING) != 0 {
                         // Its outcome will be dropped: its claims no longer count.
                         self.recheck
                             .push(std::cmp::Reverse(self.position[v as usize] as usize));
@@ -675,10 +764,12 @@ mod tests {
         }
 
         /// A scheduler that only integrates cells the ledger `wants` (any of them, with outcomes
-        /// arriving in any order) never stalls and ends with the sequential labels: claims
-        /// from pending outcomes that are later dropped are released. A mirror of the claims
-        /// kept from [`Ledger::drain_claim_changes`] equals [`Ledger::is_claimed`] throughout,
-        /// and no unwanted cell becomes wanted without a change of [`Ledger::reopenings`].
+        /// arriving in any order, running orbits saying part of what they crossed, some of them
+        /// abandoned) never stalls and ends with the sequential labels: claims from pending
+        /// outcomes that are later dropped, and from abandoned orbits, are released. A mirror
+        /// of the claims kept from [`Ledger::drain_claim_changes`] equals
+        /// [`Ledger::is_claimed`] throughout, and no unwanted cell becomes wanted without a
+        /// change of [`Ledger::reopenings`].
         #[test]
         fn integrating_only_wanted_cells_makes_progress_and_equals_the_rule(
             seed in any::<u64>(),
@@ -706,14 +797,30 @@ mod tests {
                 prop_assert!(!(wanted.is_empty() && in_flight.is_empty()), "stalled");
                 if !wanted.is_empty() && (in_flight.is_empty() || rnd() % 2 == 0) {
                     let c = wanted[(rnd() % wanted.len() as u64) as usize];
-                    in_flight.push(fake(&grid, seed, c));
-                    integrated += 1;
+                    let o = fake(&grid, seed, c);
+                    if rnd() % 2 == 0 {
+                        let said = (rnd() % (o.visited.len() as u64 + 1)) as usize;
+                        ledger.progress(c, &o.visited[..said]);
+                    }
+                    in_flight.push(o);
                 } else {
                     let k = (rnd() % in_flight.len() as u64) as usize;
                     let unwanted: Vec<u32> =
                         grid.canonical().iter().copied().filter(|&c| !ledger.wants(c)).collect();
                     let reopenings = ledger.reopenings();
-                    ledger.offer(in_flight.swap_remove(k));
+                    let o = in_flight.swap_remove(k);
+                    match rnd() % 4 {
+                        0 => ledger.forget_progress(o.cell),
+                        1 => {
+                            // More of it said, twice over for some cells; still running.
+                            ledger.progress(o.cell, &o.visited);
+                            in_flight.push(o);
+                        }
+                        _ => {
+                            integrated += 1;
+                            ledger.offer(o);
+                        }
+                    }
                     ledger.drain_claim_changes(|c, claimed| mirror[c as usize] = claimed);
                     for c in grid.canonical() {
                         prop_assert_eq!(mirror[*c as usize], ledger.is_claimed(*c), "cell {}", c);

@@ -553,6 +553,7 @@ impl Simulation {
             poll_steps: salient_core::batch::poll_interval(self.spec.cell_run(0).config.tau),
             max_leases: self.params.max_leases,
             busy_poll_ns: self.params.config.poll.as_nanos() as u64,
+            tells_crossings: executor::tells_crossings(&self.spec.cell_run(0)),
         };
         (0..workers)
             .map(|i| {

@@ -10,7 +10,7 @@ use salient_grid::Mode;
 use salient_proto::v1;
 use salient_proto::{outcome_from_wire, push_partial};
 use salient_worker::free_slots;
-use std::collections::{HashMap, HashSet, VecDeque};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::sync::Arc;
 
 type LeaseKey = (u64, u32, u32, u32);
@@ -40,6 +40,8 @@ pub struct Shape {
     pub max_leases: usize,
     /// The coordinator's poll interval while busy, in nanoseconds.
     pub busy_poll_ns: u64,
+    /// Running orbits' crossings are told (`executor::tells_crossings`).
+    pub tells_crossings: bool,
 }
 
 struct RunState {
@@ -82,6 +84,8 @@ struct Running {
     abandoning: bool,
     /// Its crossings so far were claimed when it became the frontier.
     claimed_all: bool,
+    /// Cells it crossed that were said to the coordinator.
+    said: HashSet<u32>,
 }
 
 /// Where a leased cell stands at its worker ([`SimWorker::leased_cell`]).
@@ -125,6 +129,9 @@ pub struct SimWorker {
     held: Vec<v1::TileRef>,
     outbox: Vec<v1::TileReport>,
     partial: Vec<v1::TileReport>,
+    /// Crossings of running orbits not yet said, and whether the orbit was abandoned since,
+    /// by (lease, orbit's cell): ordered, so that a seed gives one schedule.
+    crossings: BTreeMap<(LeaseKey, u32), (Vec<u32>, bool)>,
     /// Cells whose outcomes wait for the next poll, and those the poll in flight carries.
     unsent: HashSet<u32>,
     sent: HashSet<u32>,
@@ -158,6 +165,7 @@ impl SimWorker {
             held: Vec::new(),
             outbox: Vec::new(),
             partial: Vec::new(),
+            crossings: BTreeMap::new(),
             unsent: HashSet::new(),
             sent: HashSet::new(),
             hungry_compute: false,
@@ -246,6 +254,21 @@ impl SimWorker {
             held: self.held.clone(),
             reports: std::mem::take(&mut self.outbox),
             draining: false,
+            crossings: std::mem::take(&mut self.crossings)
+                .into_iter()
+                .filter(|((l, _), _)| !self.revoked.contains(l))
+                .map(|((l, cell), (crossed, stopped))| v1::Crossings {
+                    lease: Some(v1::TileRef {
+                        job: l.0,
+                        run: l.1,
+                        tile: l.2,
+                        attempt: l.3,
+                    }),
+                    cell,
+                    crossed,
+                    stopped,
+                })
+                .collect(),
             relayed: self
                 .runs
                 .iter()
@@ -549,6 +572,7 @@ impl SimWorker {
                 insisted,
                 abandoning: false,
                 claimed_all: false,
+                said: HashSet::new(),
             },
         );
         self.schedule_next(world, id);
@@ -585,7 +609,14 @@ impl SimWorker {
         let (to, _) = r.trace.crossings[r.next];
         r.next += 1;
         let (from, run) = (r.cell, r.run);
-        if let Some(c) = self.claims(run) {
+        let claims = self.runs.get(&run).map(|s| s.local.claims());
+        // Asked first, as the worker's stream does: the frontier's orbit claims what it crosses.
+        let tell = self.shape.tells_crossings && claims.is_some_and(|c| c.worth_telling(from, to));
+        if tell && r.said.insert(to) {
+            let said = self.crossings.entry((r.lease, from)).or_default();
+            said.0.push(to);
+        }
+        if let Some(c) = claims {
             c.stream_crossed(&world.grid, from, to);
         }
         self.schedule_next(world, id);
@@ -641,6 +672,9 @@ impl SimWorker {
         self.count_busy(world);
         self.totals.orbits_abandoned += 1;
         self.totals.steps += steps;
+        if steps > 0 {
+            self.crossings.entry((r.lease, r.cell)).or_default().1 = true;
+        }
         self.end_entry(world, r.lease, None, steps);
         self.settle(world);
     }

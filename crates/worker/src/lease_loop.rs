@@ -301,6 +301,7 @@ impl Poller<'_> {
                     .collect::<Vec<_>>()
             },
             draining: draining_now,
+            crossings: self.crossings(),
             relayed: self
                 .signals
                 .lock()
@@ -315,6 +316,23 @@ impl Poller<'_> {
                 })
                 .collect(),
         }
+    }
+
+    /// The crossings of running orbits of held leases since the last poll.
+    fn crossings(&self) -> Vec<v1::Crossings> {
+        let taken = std::mem::take(&mut self.signals.lock().expect("signals").crossings);
+        taken
+            .into_iter()
+            .filter_map(|((key, cell), (crossed, stopped))| {
+                let lease = self.held.iter().find(|h| lease_key(h) == key)?;
+                Some(v1::Crossings {
+                    lease: Some(*lease),
+                    cell,
+                    crossed,
+                    stopped,
+                })
+            })
+            .collect()
     }
 
     /// A successful poll's reply: answers to reports, skips and revokes, new leases, relays.

@@ -26,6 +26,9 @@ pub(crate) struct Signals {
     /// side for every outcome would make a poll (and a store commit) of each, and the
     /// coordinator shares the cores.
     pub(crate) partial: Vec<v1::TileReport>,
+    /// Cells running orbits crossed since the last poll, and whether the orbit was abandoned
+    /// since, by (lease, orbit's cell).
+    pub(crate) crossings: HashMap<(LeaseKey, u32), (Vec<u32>, bool)>,
 }
 
 pub(crate) type LeaseKey = (u64, u32, u32, u32);

@@ -257,6 +257,17 @@ impl CellSource for LeaseSource {
         self.state.lock().expect("lease source").running -= 1;
         self.end_entry(entry, outcome, steps);
     }
+
+    fn crossed(&self, first_crossings: &[(u64, u32)]) {
+        let st = self.state.lock().expect("lease source");
+        let mut s = self.signals.lock().expect("signals");
+        for &(entry, cell) in first_crossings {
+            if let Some(&key) = st.lease_of.get(&entry) {
+                let orbit = entry as u32;
+                s.crossings.entry((key, orbit)).or_default().0.push(cell);
+            }
+        }
+    }
 }
 
 impl LeaseSource {
@@ -333,6 +344,9 @@ impl LeaseSource {
                 if steps > 0 {
                     p.abandoned.0 += 1;
                     p.abandoned.1 += steps;
+                    // The coordinator may count what it crossed as claims.
+                    let mut s = self.signals.lock().expect("signals");
+                    s.crossings.entry((key, entry as u32)).or_default().1 = true;
                 }
                 None
             }

@@ -246,6 +246,14 @@ impl Claims {
         self.note_crossed(grid, from, to);
     }
 
+    /// Whether the crossing of `to` by the running orbit of `from` is worth telling the
+    /// coordinator: `to` comes after `from` in canonical order (a claim on an earlier cell
+    /// counts for nothing) and is not certain to be labelled already.
+    pub fn worth_telling(&self, from: u32, to: u32) -> bool {
+        !self.claimed[to as usize].load(Ordering::Relaxed)
+            && self.position[from as usize] < self.position[to as usize]
+    }
+
     /// Whether a stream abandons the running orbit of `cell`: once it is claimed, or, unless
     /// the source `insisted` on it (see [`super::Take::Insist`]), once it is probably labelled.
     pub fn stream_cancels(&self, grid: &Grid, cell: u32, insisted: bool) -> bool {

@@ -14,7 +14,7 @@ mod stream;
 pub use cells::{integrate_cells, trace_cells, OrbitTrace};
 pub use claims::{Claims, LocalLedger};
 pub use embedded::{run_embedded, run_embedded_forecast, takes_forecast};
-pub use stream::{integrate_stream, CellSource, Take, Verdict};
+pub use stream::{integrate_stream, tells_crossings, CellSource, Take, Verdict};
 
 use crate::geometry::Grid;
 use crate::ledger::{Mode, Outcome};

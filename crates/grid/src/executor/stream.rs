@@ -21,6 +21,28 @@ pub trait CellSource: Sync {
     /// The orbit of an entry [`Take::Cell`] gave ended: its outcome, or `None` when it was
     /// skipped (`steps` = 0) or abandoned after `steps` steps.
     fn ended(&self, entry: u64, outcome: Option<Outcome>, steps: u64);
+    /// Cells that running orbits crossed for the first time, as (entry, cell), for a source
+    /// that tells others (a worker tells its coordinator, whose lease decisions they inform).
+    fn crossed(&self, _first_crossings: &[(u64, u32)]) {}
+}
+
+/// First crossings a driver keeps before it hands them to [`CellSource::crossed`], and the
+/// crossings it sees at most meanwhile (a few milliseconds of lanes): one call per crossing
+/// would take the source's lock thousands of times per second per lane, and an orbit that
+/// crosses few new cells must not hold them back for long. Every orbit's end hands them too.
+const CROSSINGS_BATCH: usize = 256;
+const CROSSINGS_HELD: usize = 4096;
+
+/// Steps per orbit (t_final / τ) from which a stream tells its source what running orbits
+/// cross. Shorter orbits end, and their outcomes tell the same, before a claim said on the way
+/// could spare much; and they cross the section every few steps, so the bookkeeping costs
+/// more than it saves (figures: docs/performance.md).
+pub const TELL_CROSSINGS_FROM_STEPS: f64 = 1e6;
+
+/// Whether a stream of `cell_run` tells its source what running orbits cross
+/// ([`CellSource::crossed`]).
+pub fn tells_crossings(cell_run: &CellRun) -> bool {
+    cell_run.config.t_final / cell_run.config.tau >= TELL_CROSSINGS_FROM_STEPS
 }
 
 /// What a stream makes of a waiting cell.
@@ -78,6 +100,13 @@ pub fn integrate_stream(
             claims: local.claims(),
             source,
             insisted: Vec::new(),
+            said_by: if tells_crossings(cell_run) {
+                vec![u64::MAX; grid.cells()]
+            } else {
+                Vec::new()
+            },
+            fresh: Vec::new(),
+            seen: 0,
         };
         drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
     });
@@ -93,6 +122,26 @@ struct StreamFeed<'a> {
     source: &'a dyn CellSource,
     /// Entries of this driver's lanes handed out as [`Take::Insist`].
     insisted: Vec<usize>,
+    /// Per cell, the entry of the orbit that last said it crossed it: an orbit says each
+    /// cell once unless another said it since (rare, and harmless). An array, because a
+    /// crossing comes every few steps at large τ and a set per orbit cost a fifth of a lane's
+    /// time (figures: docs/performance.md).
+    said_by: Vec<u64>,
+    /// First crossings not yet handed to the source.
+    fresh: Vec<(u64, u32)>,
+    /// Crossings seen since `fresh` was last handed over.
+    seen: usize,
+}
+
+impl StreamFeed<'_> {
+    /// Hands the first crossings kept to the source.
+    fn flush_crossings(&mut self) {
+        if !self.fresh.is_empty() {
+            self.source.crossed(&self.fresh);
+            self.fresh.clear();
+        }
+        self.seen = 0;
+    }
 }
 
 impl BatchFeed<2> for StreamFeed<'_> {
@@ -120,6 +169,7 @@ impl BatchFeed<2> for StreamFeed<'_> {
         let cell = id as u32;
         self.claims.set_running(cell, false);
         self.insisted.retain(|&e| e != id);
+        self.flush_crossings();
         let visited = crossed_cells(self.grid, &r.crossings);
         let o = outcome(self.cell_run, self.checkpoints, cell, &r, visited);
         self.local.offer(o.clone());
@@ -130,7 +180,24 @@ impl BatchFeed<2> for StreamFeed<'_> {
     }
     fn on_crossing(&mut self, id: usize, c: &Crossing<2>) {
         if let Some(to) = self.grid.cell_of(c.q[1], c.p[1]) {
+            // Asked first: the frontier's orbit claims what it crosses.
+            let tell = !self.said_by.is_empty() && self.claims.worth_telling(id as u32, to);
             self.claims.stream_crossed(self.grid, id as u32, to);
+            if tell
+                && self
+                    .said_by
+                    .get(to as usize)
+                    .is_some_and(|&s| s != id as u64)
+            {
+                self.said_by[to as usize] = id as u64;
+                self.fresh.push((id as u64, to));
+            }
+            self.seen += 1;
+            if self.fresh.len() >= CROSSINGS_BATCH
+                || (self.seen >= CROSSINGS_HELD && !self.fresh.is_empty())
+            {
+                self.flush_crossings();
+            }
         }
     }
     fn cancelled(&mut self, id: usize) -> bool {
@@ -141,6 +208,7 @@ impl BatchFeed<2> for StreamFeed<'_> {
         let cell = id as u32;
         self.claims.set_running(cell, false);
         self.insisted.retain(|&e| e != id);
+        self.flush_crossings();
         self.claims.record_abandoned(steps);
         self.source.ended(id as u64, None, steps);
     }
