@@ -101,7 +101,7 @@ pub fn integrate_stream(
             source,
             insisted: Vec::new(),
             said_by: if tells_crossings(cell_run) {
-                vec![u64::MAX; grid.cells()]
+                vec![u32::MAX; grid.cells()]
             } else {
                 Vec::new()
             },
@@ -122,11 +122,11 @@ struct StreamFeed<'a> {
     source: &'a dyn CellSource,
     /// Entries of this driver's lanes handed out as [`Take::Insist`].
     insisted: Vec<usize>,
-    /// Per cell, the entry of the orbit that last said it crossed it: an orbit says each
-    /// cell once unless another said it since (rare, and harmless). An array, because a
-    /// crossing comes every few steps at large τ and a set per orbit cost a fifth of a lane's
-    /// time (figures: docs/performance.md).
-    said_by: Vec<u64>,
+    /// Per cell, the cell of the orbit that last said it crossed it: an orbit says each cell
+    /// once unless another said it since (rare, and harmless). An array, because a crossing
+    /// comes every few steps at large τ and a set per orbit cost a fifth of a lane's time
+    /// (figures: docs/performance.md); 4 bytes a cell.
+    said_by: Vec<u32>,
     /// First crossings not yet handed to the source.
     fresh: Vec<(u64, u32)>,
     /// Crossings seen since `fresh` was last handed over.
@@ -187,9 +187,9 @@ impl BatchFeed<2> for StreamFeed<'_> {
                 && self
                     .said_by
                     .get(to as usize)
-                    .is_some_and(|&s| s != id as u64)
+                    .is_some_and(|&s| s != id as u32)
             {
-                self.said_by[to as usize] = id as u64;
+                self.said_by[to as usize] = id as u32;
                 self.fresh.push((id as u64, to));
             }
             self.seen += 1;
