@@ -11,6 +11,33 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// Submits `spec` with `--wait` (results into `d/dist`), runs it embedded (into `d/emb`), checks
+/// that the two wrote the same files, and gives both `--json` summaries.
+fn submit_and_run(d: &Path, spec: &str, url: &str) -> (serde_json::Value, serde_json::Value) {
+    let (dist, emb) = (d.join("dist"), d.join("emb"));
+    let submitted = [
+        "submit",
+        spec,
+        "--wait",
+        "--json",
+        "--out",
+        dist.to_str().unwrap(),
+    ];
+    let summary = json_stdout(&client(&submitted, url));
+    let run = [
+        "run",
+        spec,
+        "--threads",
+        "2",
+        "--json",
+        "--out",
+        emb.to_str().unwrap(),
+    ];
+    let embedded = json_stdout(&salient(&run));
+    assert_same_outputs(&emb, &dist);
+    (summary, embedded)
+}
+
 /// Orbits of a million steps and more tell the coordinator what they cross while they run
 /// (the coordinator counts those cells in its "run done" line); the results stay those of
 /// `salient run`.
@@ -38,29 +65,7 @@ t_final = [1e3]
     );
     let (_c, url) = coordinator(d, "127.0.0.1:0", "coordinator.log");
     let _w: Vec<Proc> = (1..=2).map(|n| worker(d, &url, n)).collect();
-    let dist = d.join("dist");
-    let out = client(
-        &[
-            "submit",
-            &spec,
-            "--wait",
-            "--json",
-            "--out",
-            dist.to_str().unwrap(),
-        ],
-        &url,
-    );
-    json_stdout(&out);
-    let emb = d.join("emb");
-    salient(&[
-        "run",
-        &spec,
-        "--threads",
-        "2",
-        "--out",
-        emb.to_str().unwrap(),
-    ]);
-    assert_same_outputs(&emb, &dist);
+    submit_and_run(d, &spec, &url);
     let log = std::fs::read_to_string(d.join("coordinator.log")).unwrap();
     let done = log
         .lines()
@@ -109,33 +114,9 @@ delta = [1e-6]
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("token"));
 
-    let dist = d.join("dist");
-    let out = client(
-        &[
-            "submit",
-            &spec,
-            "--wait",
-            "--json",
-            "--out",
-            dist.to_str().unwrap(),
-        ],
-        &url,
-    );
-    let summary = json_stdout(&out);
+    let (summary, embedded) = submit_and_run(d, &spec, &url);
     assert_eq!(summary["runs"].as_array().unwrap().len(), 2);
-
     let emb = d.join("emb");
-    let out = salient(&[
-        "run",
-        &spec,
-        "--threads",
-        "2",
-        "--json",
-        "--out",
-        emb.to_str().unwrap(),
-    ]);
-    let embedded = json_stdout(&out);
-    assert_same_outputs(&emb, &dist);
     for (a, b) in summary["runs"]
         .as_array()
         .unwrap()
