@@ -254,19 +254,17 @@ impl SimWorker {
             held: self.held.clone(),
             reports: std::mem::take(&mut self.outbox),
             draining: false,
+            // Those of held leases, as the worker sends them.
             crossings: std::mem::take(&mut self.crossings)
                 .into_iter()
-                .filter(|((l, _), _)| !self.revoked.contains(l))
-                .map(|((l, cell), (crossed, stopped))| v1::Crossings {
-                    lease: Some(v1::TileRef {
-                        job: l.0,
-                        run: l.1,
-                        tile: l.2,
-                        attempt: l.3,
-                    }),
-                    cell,
-                    crossed,
-                    stopped,
+                .filter_map(|((key, cell), (crossed, stopped))| {
+                    let lease = self.held.iter().find(|h| lease_key(h) == key)?;
+                    Some(v1::Crossings {
+                        lease: Some(*lease),
+                        cell,
+                        crossed,
+                        stopped,
+                    })
                 })
                 .collect(),
             relayed: self
