@@ -17,15 +17,39 @@ use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tonic::Status;
 
-/// Fast PSS: tiles past the frontier's tile that leases may take cells from: at least
-/// [`WINDOW_TILES_MIN`], and [`WINDOW_TILES_PER_WORKER`] per worker. Near the frontier every
-/// cell is soon leased, has an outcome or is crossed by one while the frontier orbit runs on,
-/// and a worker whose lease brought nothing idles (workers skip cells that their own running
-/// orbits crossed, so farther cells cost little speculation). A window of [`WINDOW_TILES_MIN`]
-/// tiles runs about as fast as the whole grid, one or a few tiles per worker far slower
+/// Fast PSS: cells of the canonical order in one lease unit (the coordinator's tile; the
+/// spec's tile sizes the embedded engine's work only). Each free worker slot takes the earliest
+/// unit with wanted cells, and a unit has one lease at a time, so the unit bounds how far past
+/// the frontier's cells a few workers must speculate: 400-cell tiles sent the second worker
+/// hundreds of cells ahead, where most cells are labelled meanwhile. Fixed, not sized by the
+/// workers, so that a restarted coordinator reads the stored attempts of the same units.
+/// 16 cells (four batches of AVX2 lanes) ran faster at 4–64 simulated workers than 4, 8
+/// or 400 (figures: docs/performance.md).
+pub const FAST_PSS_LEASE_CELLS: usize = 16;
+
+/// Fast PSS: cells past the frontier that leases may take: at least [`WINDOW_CELLS_MIN`],
+/// and [`WINDOW_CELLS_PER_WORKER`] per worker. Near the frontier every cell is soon leased,
+/// has an outcome or is crossed by one while the frontier orbit runs on, and a worker whose
+/// lease brought nothing idles (workers skip cells that their own running orbits crossed, so
+/// farther cells cost little speculation). The bound keeps an idle worker's poll from scanning
+/// the whole grid; a window of [`WINDOW_CELLS_MIN`] runs about as fast as the whole grid
 /// (figures: docs/performance.md).
-const WINDOW_TILES_PER_WORKER: usize = 4;
-const WINDOW_TILES_MIN: usize = 64;
+const WINDOW_CELLS_PER_WORKER: usize = 1_600;
+const WINDOW_CELLS_MIN: usize = 25_600;
+
+/// The grid a run's leases cut: fast PSS in units of [`FAST_PSS_LEASE_CELLS`], full mode in
+/// the spec's tiles (a tile's orbits are independent, and larger units cost fewer round trips).
+pub fn lease_grid(spec: &JobSpec) -> Grid {
+    let grid = spec.grid();
+    match spec.grid.mode {
+        salient_grid::Mode::FastPss => grid.retiled(FAST_PSS_LEASE_CELLS),
+        salient_grid::Mode::Full => grid,
+    }
+}
+
+/// Leases one poll's reply carries at most: a many-threaded worker's batch of fast-PSS
+/// cells spans many lease units.
+const MAX_POLL_LEASES: usize = 256;
 
 /// Relayed outcomes one poll's reply carries at most (bytes), well below the message limit.
 const RELAY_BYTES: usize = 1 << 20;
@@ -261,7 +285,7 @@ fn counter(run: usize, what: &str) -> String {
 
 impl Run {
     fn new(spec: &JobSpec, index: usize) -> Run {
-        let grid = spec.grid();
+        let grid = lease_grid(spec);
         let cell_run = spec.cell_run(index);
         Run {
             ledger: Ledger::new(&grid, spec.grid.mode),
@@ -899,17 +923,18 @@ impl Scheduler {
                     continue;
                 }
                 // Tiles are runs of the canonical order: the frontier's is this one.
-                let first = run.ledger.frontier() / run.grid.tile_size();
-                // Speculation beyond the frontier's tile is bounded (see WINDOW_TILES_MIN):
-                // further cells are likely to be labelled meanwhile, and scanning the whole
-                // grid on every poll of an idle worker costs the coordinator more CPU than the
-                // leases themselves. (Later runs of the job are scanned next: their frontier
-                // is certain work.)
-                let ahead = (WINDOW_TILES_PER_WORKER * workers.max(1)).max(WINDOW_TILES_MIN);
+                let size = run.grid.tile_size();
+                let first = run.ledger.frontier() / size;
+                // Speculation past the frontier is bounded (see WINDOW_CELLS_MIN): further
+                // cells are likely to be labelled meanwhile, and scanning the whole grid on
+                // every poll of an idle worker costs the coordinator more CPU than the leases
+                // themselves. (Later runs of the job are scanned next: their frontier is
+                // certain work.)
+                let ahead = (WINDOW_CELLS_PER_WORKER * workers.max(1)).max(WINDOW_CELLS_MIN);
                 let last = if run.forecast.is_some() {
                     run.tiles.len()
                 } else {
-                    (first + 1 + ahead).min(run.tiles.len())
+                    (first + 1 + ahead.div_ceil(size)).min(run.tiles.len())
                 };
                 let reopenings = run.ledger.reopenings();
                 for t in first..last {
@@ -1151,6 +1176,21 @@ impl Scheduler {
         out
     }
 
+    /// Fast PSS: the cells one slot of a worker with `threads` threads takes in a poll, for
+    /// the run of lease `key` ([`Config::lease_cells_per_thread`]); `None` in full mode (a
+    /// slot takes one tile).
+    fn batch_cells(&self, key: TileKey, threads: usize) -> Option<usize> {
+        let job = &self.jobs[&key.0];
+        if job.spec.grid.mode != salient_grid::Mode::FastPss {
+            return None;
+        }
+        let mut per_thread = self.cfg.lease_cells_per_thread;
+        if let Some(orbits) = job.runs[key.1 as usize].adaptive_orbits_per_thread {
+            per_thread = (per_thread * orbits / ADAPTIVE_LEASE_SHARE).max(1);
+        }
+        Some((threads * per_thread).max(1))
+    }
+
     pub fn poll(&mut self, req: &v1::PollRequest) -> Result<v1::PollReply, Status> {
         self.known_worker(&req.worker_id)?;
         let worker = req.worker_id.as_str();
@@ -1172,21 +1212,22 @@ impl Scheduler {
         if !req.draining {
             let threads = self.workers.get(worker).map_or(1, |w| w.threads as usize);
             for _ in 0..req.free_slots.min(8) {
-                let Some((key, mut cells)) = self.next_tile(worker) else {
-                    break;
-                };
-                // Fast PSS: lease a tile's wanted cells a worker's batch at a time, each lease
-                // judged on the latest claims, so speculation stays about one batch per worker
-                // (a tile with wanted cells left is leased again once this lease finishes).
-                let job = &self.jobs[&key.0];
-                if job.spec.grid.mode == salient_grid::Mode::FastPss {
-                    let mut per_thread = self.cfg.lease_cells_per_thread;
-                    if let Some(orbits) = job.runs[key.1 as usize].adaptive_orbits_per_thread {
-                        per_thread = (per_thread * orbits / ADAPTIVE_LEASE_SHARE).max(1);
+                // Fast PSS: a slot takes a worker's batch of wanted cells, from as many lease
+                // units as it needs, each lease judged on the latest claims, so speculation
+                // stays about one batch per worker and each poll brings a batch.
+                let mut room = None;
+                while let Some((key, mut cells)) = self.next_tile(worker) {
+                    let budget = *room.get_or_insert(self.batch_cells(key, threads));
+                    if let Some(left) = budget {
+                        cells.truncate(left);
+                        room = Some(Some(left - cells.len()));
                     }
-                    cells.truncate((threads * per_thread).max(1));
+                    leases.push(self.lease(worker, key, cells)?);
+                    if !matches!(room, Some(Some(left)) if left > 0 && leases.len() < MAX_POLL_LEASES)
+                    {
+                        break;
+                    }
                 }
-                leases.push(self.lease(worker, key, cells)?);
             }
         }
         let (acknowledged, stale) = self.owed_answers(worker, replies);

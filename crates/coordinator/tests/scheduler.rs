@@ -278,6 +278,58 @@ fn lease_one(s: &mut Scheduler, w: &str) -> v1::Lease {
     .remove(0)
 }
 
+/// Fast PSS: leases cut the canonical order into units of `FAST_PSS_LEASE_CELLS`, whatever the
+/// spec's tile, and a poll's slot fills a worker's batch from as many units as it takes; the
+/// next worker gets the units right after, not the next spec tile hundreds of cells on. Full
+/// mode leases the spec's tiles whole.
+#[test]
+fn fast_pss_leases_small_units_of_the_order_and_fill_a_batch_from_several() {
+    use salient_coordinator::scheduler::FAST_PSS_LEASE_CELLS as UNIT;
+    let json = |mode: &str| {
+        format!(
+            r#"{{"name": "t", "system": {{"kind": "henon-heiles", "energy": 0.125}},
+                "grid": {{"cells": [40, 40], "tile": [20, 20], "mode": "{mode}"}},
+                "sweep": {{"method": ["tm-sbab2c"], "tau": [0.5], "t_final": [200.0]}}}}"#
+        )
+    };
+    let batch = 2 * UNIT + UNIT / 2;
+    let cfg = Config {
+        lease_cells_per_thread: batch,
+        ..config()
+    };
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), cfg).unwrap();
+    let (job, _) = s.submit(&json("fast-pss")).unwrap();
+    let order = spec::parse(&json("fast-pss"), true).unwrap().grid().canonical().to_vec();
+    assert!(order.len() > 20 * 20 + batch, "the grid must hold more than a spec tile");
+    let (a, b) = (register(&mut s), register(&mut s));
+    let poll = |s: &mut Scheduler, w: &str| {
+        s.poll(&v1::PollRequest {
+            worker_id: w.into(),
+            free_slots: 1,
+            ..Default::default()
+        })
+        .unwrap()
+        .leases
+    };
+    let first = poll(&mut s, &a);
+    assert_eq!(first.len(), 3, "a batch of 2.5 units takes three leases");
+    let cells: Vec<u32> = first.iter().flat_map(|l| l.cells.clone()).collect();
+    assert_eq!(cells, order[..batch]);
+    for (i, l) in first.iter().enumerate() {
+        assert_eq!(l.lease.unwrap().tile as usize, i);
+    }
+    let second = poll(&mut s, &b);
+    assert_eq!(second[0].cells[0], order[3 * UNIT], "the next unit after the leased ones");
+    assert!(second.iter().all(|l| l.lease.unwrap().job == job));
+
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    s.submit(&json("full")).unwrap();
+    let w = register(&mut s);
+    let full = poll(&mut s, &w);
+    assert_eq!(full.len(), 1);
+    assert_eq!(full[0].cells, order[..20 * 20]);
+}
+
 /// Fast PSS: what a running orbit crossed claims those cells as its outcome will: another
 /// worker holding one is told to skip it, and the claim goes when the orbit stops. Crossings
 /// of earlier cells, of a lease the worker does not hold, or of a cell outside the lease
@@ -517,12 +569,12 @@ fn malformed_reports_are_refused_and_change_nothing() {
     let good = work(&lease, &HashSet::new());
     let tile = lease.lease.unwrap();
     let spec = spec::parse(&lease.spec_json, true).unwrap();
-    let other_tile_cell = spec
-        .grid()
+    let grid = salient_coordinator::scheduler::lease_grid(&spec);
+    let other_tile_cell = grid
         .canonical()
         .iter()
         .copied()
-        .find(|&c| spec.grid().tile_of(c) != Some(tile.tile as usize))
+        .find(|&c| grid.tile_of(c) != Some(tile.tile as usize))
         .unwrap();
     let with = |f: &dyn Fn(&mut v1::TileReport)| {
         let mut r = good.clone();

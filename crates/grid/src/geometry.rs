@@ -100,7 +100,8 @@ pub struct Grid {
     pub n_p2: usize,
     pub q2: (f64, f64),
     pub p2: (f64, f64),
-    /// The spec's tile: a unit of work of `tile.0 × tile.1` cells ([`Grid::tile_count`]).
+    /// A unit of work of `tile.0 × tile.1` cells ([`Grid::tile_count`]): the spec's tile, or
+    /// the distributed scheduler's lease unit ([`Grid::retiled`]).
     pub tile: (usize, usize),
     pub order: ScanOrder,
     compatible: Vec<bool>,
@@ -255,6 +256,13 @@ impl Grid {
     /// Cells in a tile: `tile.0 × tile.1`.
     pub fn tile_size(&self) -> usize {
         self.tile.0 * self.tile.1
+    }
+
+    /// The same grid and canonical order cut into tiles of `cells` cells. Tiles cut the order,
+    /// not the plane, so nothing but the units of work changes.
+    pub fn retiled(mut self, cells: usize) -> Grid {
+        self.tile = (1, cells.max(1));
+        self
     }
 
     /// Number of tiles. A tile is a unit of work: [`Grid::tile_size`] consecutive compatible
