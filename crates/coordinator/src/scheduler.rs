@@ -8,7 +8,7 @@ use crate::writer::{Deferred, StoreThread, Write};
 use prost::bytes::Bytes;
 use prost::Message;
 use salient_grid::spec::{self, JobSpec};
-use salient_grid::{Forecast, Grid, Ledger};
+use salient_grid::{Forecast, Grid, Ledger, OutcomeNews};
 use salient_proto::v1;
 use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
 use salient_store::{JobState, Store, StoreError};
@@ -202,12 +202,16 @@ struct Run {
     grid: Grid,
     ledger: Ledger,
     stall: Stall,
-    /// Fast PSS: every outcome received, with the serial of the worker that sent it
-    /// (`u64::MAX`: loaded from the store), relayed to the other workers of the run
-    /// ([`v1::Relay`]). Emptied when the run is done.
-    /// Each outcome as the store holds it, encoded once: every reply that relays it shares
-    /// these bytes.
+    /// Fast PSS: every outcome received that counts, in the order it came to count, with the
+    /// serial of the worker that sent it (`u64::MAX`: loaded from the store), relayed to the
+    /// other workers of the run ([`v1::Relay`]). Emptied when the run is done. Each outcome as
+    /// the store holds it, encoded once: every reply that relays it shares these bytes.
     relay: Vec<(u64, Bytes)>,
+    /// Fast PSS: outcomes received that do not count yet (an earlier live outcome crossed
+    /// their cell), by cell: relayed once they count ([`OutcomeNews`]), forgotten when
+    /// dropped. Workers skip cells by the claims of counting outcomes only, so the others
+    /// would cost every worker their bytes for nothing.
+    unrelayed: HashMap<u32, (u64, Bytes)>,
     /// Cells whose own outcome is in the store (the ledger forgets a dropped one, and a resent
     /// report must still change nothing).
     stored: Vec<bool>,
@@ -287,10 +291,15 @@ impl Run {
     fn new(spec: &JobSpec, index: usize) -> Run {
         let grid = lease_grid(spec);
         let cell_run = spec.cell_run(index);
+        let mut ledger = Ledger::new(&grid, spec.grid.mode);
+        if spec.grid.mode == salient_grid::Mode::FastPss {
+            ledger.watch_outcomes();
+        }
         Run {
-            ledger: Ledger::new(&grid, spec.grid.mode),
+            ledger,
             stall: Stall::default(),
             relay: Vec::new(),
+            unrelayed: HashMap::new(),
             stored: vec![false; grid.cells()],
             forecast: None,
             checkpoints: cell_run.checkpoint_steps().len(),
@@ -320,7 +329,36 @@ impl Run {
         for &cell in &lease.running {
             self.ledger.forget_progress(cell);
         }
+        self.relay_news();
         Some(lease)
+    }
+
+    /// Fast PSS: offers an outcome received from the worker of serial `from` (`u64::MAX`:
+    /// loaded from the store) and relays what now counts.
+    fn offer(&mut self, from: u64, encoded: Bytes, outcome: salient_grid::Outcome) {
+        let cell = outcome.cell;
+        self.ledger.offer(outcome);
+        if self.ledger.mode() == salient_grid::Mode::FastPss {
+            self.unrelayed.insert(cell, (from, encoded));
+            self.relay_news();
+        }
+    }
+
+    /// Moves the outcomes that came to count to the relay log, in the order they did, and
+    /// forgets the dropped ones.
+    fn relay_news(&mut self) {
+        for news in self.ledger.take_outcome_news() {
+            match news {
+                OutcomeNews::Counts(cell) => {
+                    if let Some(o) = self.unrelayed.remove(&cell) {
+                        self.relay.push(o);
+                    }
+                }
+                OutcomeNews::Dropped(cell) => {
+                    self.unrelayed.remove(&cell);
+                }
+            }
+        }
     }
 
     /// Fast PSS: what the running orbit of `cell`, leased in `lease` to `worker`, crossed
@@ -349,6 +387,7 @@ impl Run {
             self.crossings_said += x.crossed.len() as u64;
             self.ledger.progress(x.cell, &x.crossed);
         }
+        self.relay_news();
     }
 
     /// The cells of tile `t` that need their own orbit now, and whether the forecast held
@@ -534,10 +573,7 @@ impl Scheduler {
                 let o = outcome_from_wire(&wire, &run.grid, run.checkpoints)
                     .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
                 run.stored[o.cell as usize] = true;
-                run.ledger.offer(o);
-                if run.ledger.mode() == salient_grid::Mode::FastPss {
-                    run.relay.push((u64::MAX, encoded));
-                }
+                run.offer(u64::MAX, encoded, o);
             }
             run.cpu_ns = self
                 .store
@@ -547,6 +583,7 @@ impl Scheduler {
             run.done = run.ledger.done();
             if run.done {
                 run.relay = Vec::new();
+                run.unrelayed = HashMap::new();
             }
             run.wall_s = count(index, "wall_ms") as f64 / 1e3;
             run.extra_dropped_orbits = count(index, "extra_dropped_orbits");
@@ -813,13 +850,16 @@ impl Scheduler {
                 let serial = self.workers.get(worker).map_or(u64::MAX, |w| w.serial);
                 for (_, encoded, o) in fresh {
                     run.stored[o.cell as usize] = true;
-                    run.ledger.offer(o);
-                    if run.ledger.mode() == salient_grid::Mode::FastPss {
-                        run.relay.push((serial, encoded));
-                    }
+                    run.offer(serial, encoded, o);
                 }
             }
-            if r.finished && tile.lease.as_ref().is_some_and(|l| l.worker == worker) {
+            let holds = |l: &ActiveLease| l.worker == worker;
+            if r.finished
+                && run.tiles[lease.tile as usize]
+                    .lease
+                    .as_ref()
+                    .is_some_and(holds)
+            {
                 run.end_lease(lease.tile as usize);
                 if run.ledger.mode() == salient_grid::Mode::FastPss {
                     let workers = &self.workers;
@@ -874,6 +914,7 @@ impl Scheduler {
             run.wall_s = wall_s;
             run.done = true;
             run.relay = Vec::new();
+            run.unrelayed = HashMap::new();
             // Speculative leases of a finished run are no longer needed.
             for (t, tile) in run.tiles.iter_mut().enumerate() {
                 if let Some(l) = tile.lease.take() {

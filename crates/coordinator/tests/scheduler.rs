@@ -5,7 +5,7 @@
 
 use salient_coordinator::scheduler::{Config, Scheduler};
 use salient_grid::spec::{self, JobSpec};
-use salient_grid::{integrate_cells, run_embedded, Label, Ledger};
+use salient_grid::{integrate_cells, run_embedded, Label, Ledger, OutcomeNews};
 use salient_proto::v1;
 use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
 use salient_store::Store;
@@ -299,8 +299,15 @@ fn fast_pss_leases_small_units_of_the_order_and_fill_a_batch_from_several() {
     };
     let mut s = Scheduler::new(Store::open_in_memory().unwrap(), cfg).unwrap();
     let (job, _) = s.submit(&json("fast-pss")).unwrap();
-    let order = spec::parse(&json("fast-pss"), true).unwrap().grid().canonical().to_vec();
-    assert!(order.len() > 20 * 20 + batch, "the grid must hold more than a spec tile");
+    let order = spec::parse(&json("fast-pss"), true)
+        .unwrap()
+        .grid()
+        .canonical()
+        .to_vec();
+    assert!(
+        order.len() > 20 * 20 + batch,
+        "the grid must hold more than a spec tile"
+    );
     let (a, b) = (register(&mut s), register(&mut s));
     let poll = |s: &mut Scheduler, w: &str| {
         s.poll(&v1::PollRequest {
@@ -319,7 +326,11 @@ fn fast_pss_leases_small_units_of_the_order_and_fill_a_batch_from_several() {
         assert_eq!(l.lease.unwrap().tile as usize, i);
     }
     let second = poll(&mut s, &b);
-    assert_eq!(second[0].cells[0], order[3 * UNIT], "the next unit after the leased ones");
+    assert_eq!(
+        second[0].cells[0],
+        order[3 * UNIT],
+        "the next unit after the leased ones"
+    );
     assert!(second.iter().all(|l| l.lease.unwrap().job == job));
 
     let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
@@ -391,8 +402,9 @@ fn a_running_orbits_crossings_keep_other_workers_off_its_cells_until_it_stops() 
 }
 
 /// Fast PSS: a worker gets the outcomes other workers reported in the run it holds leases
-/// of, its own only when its mark asks for them (a ledger made afresh), continuing from the
-/// mark it sends, so a reply it lost comes again.
+/// of that count (they commit or turn live; dropped ones never go), its own only when its mark
+/// asks for them (a ledger made afresh), continuing from the mark it sends, so a reply it lost
+/// comes again.
 #[test]
 fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     let json = spec_json("fast-pss", r#""tm-sbab2c""#);
@@ -401,6 +413,26 @@ fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     let (a, b) = (register(&mut s), register(&mut s));
     let lease_a = lease_one(&mut s, &a);
     let lease_b = lease_one(&mut s, &b);
+    // The cells whose outcomes come to count, in the order they do, as a ledger of the run
+    // tells them.
+    let sp = spec::parse(&json, true).unwrap();
+    let mut mirror = Ledger::new(&sp.grid(), sp.grid.mode);
+    mirror.watch_outcomes();
+    let mut counting = |outcomes: &[v1::Outcome]| -> Vec<u32> {
+        let k = sp.cell_run(0).checkpoint_steps().len();
+        for o in outcomes {
+            mirror.offer(outcome_from_wire(o, &sp.grid(), k).unwrap());
+        }
+        let mut cells: Vec<u32> = Vec::new();
+        for news in mirror.take_outcome_news() {
+            if let OutcomeNews::Counts(c) = news {
+                if !cells.contains(&c) {
+                    cells.push(c);
+                }
+            }
+        }
+        cells
+    };
     let poll_marked =
         |s: &mut Scheduler, w: &str, held: &v1::Lease, reports, next: Option<u64>, own| {
             s.poll(&v1::PollRequest {
@@ -440,11 +472,11 @@ fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     // A's finished lease is relayed to B (which holds a lease of the run), not back to A.
     let mut report_a = work(&lease_a, &HashSet::new());
     report_a.finished = false;
-    let cells_a: Vec<u32> = report_a.outcomes.iter().map(|o| o.cell).collect();
+    let cells_a = counting(&report_a.outcomes);
     assert!(!cells_a.is_empty());
     let n = cells_a.len() as u64;
     // A gets none of its own, only the mark past them.
-    let r = poll(&mut s, &a, &lease_a, vec![report_a], None);
+    let r = poll(&mut s, &a, &lease_a, vec![report_a.clone()], None);
     assert_eq!(relayed(&r), vec![(vec![], n)]);
     let r = poll(&mut s, &b, &lease_b, vec![], None);
     assert_eq!(relayed(&r), vec![(cells_a.clone(), n)]);
@@ -462,7 +494,12 @@ fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     // B's outcomes go to A, past A's own, which it skips but counts in the mark.
     let mut report_b = work(&lease_b, &HashSet::new());
     report_b.finished = false;
-    let cells_b: Vec<u32> = report_b.outcomes.iter().map(|o| o.cell).collect();
+    let cells_b = counting(&report_b.outcomes);
+    let reported = report_a.outcomes.len() + report_b.outcomes.len();
+    assert!(
+        cells_a.len() + cells_b.len() < reported,
+        "some outcomes were dropped, and not relayed"
+    );
     poll(&mut s, &b, &lease_b, vec![report_b], Some(n));
     let total = n + cells_b.len() as u64;
     assert_eq!(

@@ -155,6 +155,15 @@ impl Forecast {
     }
 }
 
+/// What became of an offered fast-PSS outcome ([`Ledger::take_outcome_news`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OutcomeNews {
+    /// The outcome of this cell counts: it turned live (its claims count) or committed.
+    Counts(u32),
+    /// The outcome of this cell was dropped (an earlier one labelled its cell).
+    Dropped(u32),
+}
+
 /// Commits outcomes in canonical order.
 #[derive(Clone, Debug)]
 pub struct Ledger {
@@ -182,6 +191,9 @@ pub struct Ledger {
     pub committed_steps: u64,
     /// Cells labelled since the last [`Ledger::take_newly_labelled`].
     newly_labelled: Vec<u32>,
+    /// Fast PSS, once [`Ledger::watch_outcomes`] asked: what became of offered outcomes since
+    /// the last [`Ledger::take_outcome_news`].
+    news: Option<Vec<OutcomeNews>>,
     /// Fast PSS: the claims of live pending outcomes.
     claims: ClaimCounts,
     /// Cells that lost their last claim while unlabelled, so far (see [`Ledger::reopenings`]).
@@ -210,6 +222,7 @@ impl Ledger {
             dropped_steps: 0,
             committed_steps: 0,
             newly_labelled: Vec::new(),
+            news: None,
             claims: ClaimCounts {
                 early: owned(vec![0; cells], || 0),
                 changes: None,
@@ -359,6 +372,24 @@ impl Ledger {
         std::mem::take(&mut self.newly_labelled)
     }
 
+    /// Starts recording what becomes of offered outcomes ([`Ledger::take_outcome_news`]).
+    pub fn watch_outcomes(&mut self) {
+        self.news.get_or_insert_with(Vec::new);
+    }
+
+    /// What became of offered outcomes since the last call (nothing unless
+    /// [`Ledger::watch_outcomes`] was called): an outcome may be told more than once as
+    /// counting (turned live, then committed), and once as dropped.
+    pub fn take_outcome_news(&mut self) -> Vec<OutcomeNews> {
+        self.news.as_mut().map(std::mem::take).unwrap_or_default()
+    }
+
+    fn tell(&mut self, news: OutcomeNews) {
+        if let Some(n) = &mut self.news {
+            n.push(news);
+        }
+    }
+
     /// Counts speculative orbits abandoned before they finished (their cell was certain to be
     /// labelled by an earlier orbit) with the steps they had taken.
     pub fn record_abandoned(&mut self, orbits: u64, steps: u64) {
@@ -437,6 +468,9 @@ impl Ledger {
         // The outcome takes over from its orbit's progress.
         self.end_progress(pos);
         if pos < self.next || self.flags[outcome.cell as usize] & (LABELLED | PENDING) != 0 {
+            if self.flags[outcome.cell as usize] & PENDING == 0 {
+                self.tell(OutcomeNews::Dropped(outcome.cell));
+            }
             self.dropped += 1;
             self.dropped_steps = self.dropped_steps.saturating_add(outcome.steps);
             self.advance();
@@ -471,6 +505,7 @@ impl Ledger {
                     if p.live {
                         self.release(&p.outcome.visited, pos);
                     }
+                    self.tell(OutcomeNews::Dropped(cell));
                     self.dropped += 1;
                     self.dropped_steps = self.dropped_steps.saturating_add(p.outcome.steps);
                 }
@@ -481,6 +516,7 @@ impl Ledger {
                 break;
             };
             self.flags[cell as usize] &= !PENDING;
+            self.tell(OutcomeNews::Counts(cell));
             // Labels first: the claims it releases then fall on labelled cells, which reopen
             // nothing.
             self.commit(p.outcome);
@@ -538,6 +574,9 @@ impl Ledger {
             }
             *live = should;
             let visited = std::mem::take(visited);
+            if should && self.pending.contains_key(&pos) {
+                self.tell(OutcomeNews::Counts(cell));
+            }
             if should {
                 let (flags, position, recheck) = (&self.flags, &self.position, &mut self.recheck);
                 self.claims
@@ -887,6 +926,44 @@ mod tests {
             ledger.needed(2, &|c| c == canon[0]),
             vec![canon[1], canon[3]]
         );
+    }
+
+    /// The news of the chain below: an outcome counts when it turns live or commits (again
+    /// after it was dead for a while), and is dropped once, also when it arrives for a cell
+    /// already labelled.
+    #[test]
+    fn outcome_news_tell_when_an_outcome_counts_and_when_it_is_dropped() {
+        let grid = Grid::new(0.125, 6, 6, (-0.43, 0.67), (-0.5, 0.5), (3, 3));
+        let canon = grid.canonical().to_vec();
+        let outcome = |at: usize, crosses: Option<usize>| Outcome {
+            visited: crosses.map(|c| canon[c]).into_iter().collect(),
+            ..fake(&grid, 1, canon[at])
+        };
+        use OutcomeNews::{Counts, Dropped};
+        let mut ledger = Ledger::new(&grid, Mode::FastPss);
+        ledger.offer(outcome(5, None));
+        assert!(
+            ledger.take_outcome_news().is_empty(),
+            "nothing unless watched"
+        );
+        let mut ledger = Ledger::new(&grid, Mode::FastPss);
+        ledger.watch_outcomes();
+        let mut step = |at: usize, crosses: Option<usize>| {
+            ledger.offer(outcome(at, crosses));
+            ledger.take_outcome_news()
+        };
+        assert_eq!(step(4, Some(6)), [Counts(canon[4])]);
+        // 2 crosses 4, which turns dead: nothing to tell of it.
+        assert_eq!(step(2, Some(4)), [Counts(canon[2])]);
+        // 1 crosses 2: 2 dead, 4 live again.
+        assert_eq!(step(1, Some(2)), [Counts(canon[1]), Counts(canon[4])]);
+        // 0 and 1 commit, 1 labels 2: dropped.
+        assert_eq!(
+            step(0, None),
+            [Counts(canon[0]), Counts(canon[1]), Dropped(canon[2])]
+        );
+        assert_eq!(step(3, Some(4)), [Counts(canon[3]), Dropped(canon[4])]);
+        assert_eq!(step(2, None), [Dropped(canon[2])], "a late repeat");
     }
 
     /// Pending outcomes in a chain, each crossing the next one's cell: only those that no live
