@@ -90,13 +90,13 @@ fn main() {
     for &c in &compatible {
         fakes[c as usize] = Some(fake(c));
     }
-    let mut held: Vec<Option<v1::Lease>> = vec![None; workers.len()];
+    let mut held: Vec<Vec<v1::Lease>> = vec![Vec::new(); workers.len()];
     // Each worker's relay marks, sent back with every poll as a real worker does: without
     // them every poll would be answered with the run's relay log from its start.
     let mut marks: Vec<Vec<v1::RelayMark>> = vec![Vec::new(); workers.len()];
     let mut relayed = 0u64;
     let (t0, c0) = (Instant::now(), cpu_seconds());
-    let (mut outcomes, mut reports) = (0u64, 0u64);
+    let (mut outcomes, mut reports_sent) = (0u64, 0u64);
     let mut k = 0;
     for _ in 0..jobs {
         let (job, _) = s.submit(&json).unwrap();
@@ -106,35 +106,39 @@ fn main() {
             }
             let w = k % workers.len();
             k += 1;
-            let report = held[w].take().map(|l| {
-                let tile = l.lease.unwrap();
-                outcomes += l.cells.len() as u64;
-                reports += 1;
-                v1::TileReport {
-                    lease: Some(tile),
-                    outcomes: l
-                        .cells
-                        .iter()
-                        .map(|&c| {
-                            fakes[c as usize]
-                                .clone()
-                                .expect("leased cells are compatible")
-                        })
-                        .collect(),
-                    finished: true,
-                    ..Default::default()
-                }
-            });
+            // Every lease the last reply brought, reported finished: a fast-PSS poll may
+            // bring a batch of several lease units.
+            let reports: Vec<v1::TileReport> = std::mem::take(&mut held[w])
+                .into_iter()
+                .map(|l| {
+                    outcomes += l.cells.len() as u64;
+                    v1::TileReport {
+                        lease: l.lease,
+                        outcomes: l
+                            .cells
+                            .iter()
+                            .map(|&c| {
+                                fakes[c as usize]
+                                    .clone()
+                                    .expect("leased cells are compatible")
+                            })
+                            .collect(),
+                        finished: true,
+                        ..Default::default()
+                    }
+                })
+                .collect();
+            reports_sent += reports.len() as u64;
             let reply = s
                 .poll(&v1::PollRequest {
                     worker_id: workers[w].clone(),
                     free_slots: 1,
-                    reports: report.into_iter().collect(),
+                    reports,
                     relayed: marks[w].clone(),
                     ..Default::default()
                 })
                 .unwrap();
-            held[w] = reply.leases.into_iter().next();
+            held[w] = reply.leases;
             for r in reply.relays {
                 relayed += r.outcomes.len() as u64;
                 match marks[w]
@@ -164,10 +168,10 @@ fn main() {
     println!(
         "mode {mode}, {visited} visited per outcome, {group} polls per transaction, {jobs} jobs, \
          {n_workers} workers: \
-         {outcomes} outcomes in {reports} reports ({relayed} relayed to other workers), \
+         {outcomes} outcomes in {reports_sent} reports ({relayed} relayed to other workers), \
          {wall:.2} s wall, {:.0} outcomes/s, {:.1} µs CPU per outcome, {:.2} ms per report",
         outcomes as f64 / wall,
         1e6 * cpu / outcomes as f64,
-        1e3 * wall / reports as f64
+        1e3 * wall / reports_sent as f64
     );
 }

@@ -952,15 +952,19 @@ impl Scheduler {
     /// The next tile with cells that need an orbit for `worker`, FIFO over jobs and in order
     /// over runs and tiles (from each run's frontier on, a bounded window), and those cells.
     /// A stalled run's tiles that this worker returned empty go to others while there are.
-    fn next_tile(&mut self, worker: &str) -> Option<(TileKey, Vec<u32>)> {
+    /// The search starts past tile `after` (the one a poll just leased: nothing changed before
+    /// it since).
+    fn next_tile(&mut self, worker: &str, after: Option<TileKey>) -> Option<(TileKey, Vec<u32>)> {
         let workers = self.workers.len();
         let registered = &self.workers;
-        for job in self.jobs.values_mut() {
+        let from = after.map_or((0, 0, 0), |(j, r, t)| (j, r, t + 1));
+        for job in self.jobs.range_mut(from.0..).map(|(_, job)| job) {
             if job.state.is_terminal() {
                 continue;
             }
             for (r, run) in job.runs.iter_mut().enumerate() {
-                if run.done {
+                let resumed = (job.id, r as u32) == (from.0, from.1);
+                if run.done || (job.id == from.0 && (r as u32) < from.1) {
                     continue;
                 }
                 // Tiles are runs of the canonical order: the frontier's is this one.
@@ -978,7 +982,12 @@ impl Scheduler {
                     (first + 1 + ahead.div_ceil(size)).min(run.tiles.len())
                 };
                 let reopenings = run.ledger.reopenings();
-                for t in first..last {
+                let start = if resumed {
+                    first.max(from.2 as usize)
+                } else {
+                    first
+                };
+                for t in start..last {
                     let tile = &run.tiles[t];
                     if tile.lease.is_some()
                         || tile.drained_at == Some(reopenings)
@@ -1252,12 +1261,14 @@ impl Scheduler {
         let mut leases = Vec::new();
         if !req.draining {
             let threads = self.workers.get(worker).map_or(1, |w| w.threads as usize);
+            let mut after = None;
             for _ in 0..req.free_slots.min(8) {
                 // Fast PSS: a slot takes a worker's batch of wanted cells, from as many lease
                 // units as it needs, each lease judged on the latest claims, so speculation
                 // stays about one batch per worker and each poll brings a batch.
                 let mut room = None;
-                while let Some((key, mut cells)) = self.next_tile(worker) {
+                while let Some((key, mut cells)) = self.next_tile(worker, after) {
+                    after = Some(key);
                     let budget = *room.get_or_insert(self.batch_cells(key, threads));
                     if let Some(left) = budget {
                         cells.truncate(left);
