@@ -1263,20 +1263,28 @@ impl Scheduler {
             let threads = self.workers.get(worker).map_or(1, |w| w.threads as usize);
             let mut after = None;
             for _ in 0..req.free_slots.min(8) {
-                // Fast PSS: a slot takes a worker's batch of wanted cells, from as many lease
-                // units as it needs, each lease judged on the latest claims, so speculation
-                // stays about one batch per worker and each poll brings a batch.
-                let mut room = None;
+                // Fast PSS: a slot takes the wanted cells of the units within a worker's batch
+                // of the canonical order from the first unit it finds (a batch's worth of
+                // cells at most), each lease judged on the latest claims, so speculation stays
+                // within about one batch per worker.
+                let mut slot: Option<(TileKey, usize, usize)> = None;
                 while let Some((key, mut cells)) = self.next_tile(worker, after) {
-                    after = Some(key);
-                    let budget = *room.get_or_insert(self.batch_cells(key, threads));
-                    if let Some(left) = budget {
-                        cells.truncate(left);
-                        room = Some(Some(left - cells.len()));
+                    // The slot's first unit, the units it may span, the cells it may still take.
+                    let (first, span, left) = *slot.get_or_insert_with(|| {
+                        let batch = self.batch_cells(key, threads).unwrap_or(usize::MAX);
+                        (key, batch.div_ceil(FAST_PSS_LEASE_CELLS), batch)
+                    });
+                    let beyond = (first.2 as usize).saturating_add(span);
+                    if (key.0, key.1) != (first.0, first.1) || key.2 as usize >= beyond {
+                        break;
                     }
+                    after = Some(key);
+                    cells.truncate(left);
+                    let left = left - cells.len();
+                    slot = Some((first, span, left));
+                    let full = self.jobs[&key.0].spec.grid.mode == salient_grid::Mode::Full;
                     leases.push(self.lease(worker, key, cells)?);
-                    if !matches!(room, Some(Some(left)) if left > 0 && leases.len() < MAX_POLL_LEASES)
-                    {
+                    if full || left == 0 || leases.len() >= MAX_POLL_LEASES {
                         break;
                     }
                 }

@@ -279,7 +279,7 @@ fn lease_one(s: &mut Scheduler, w: &str) -> v1::Lease {
 }
 
 /// Fast PSS: leases cut the canonical order into units of `FAST_PSS_LEASE_CELLS`, whatever the
-/// spec's tile, and a poll's slot fills a worker's batch from as many units as it takes; the
+/// spec's tile, and a poll's slot takes the units within a worker's batch of the order; the
 /// next worker gets the units right after, not the next spec tile hundreds of cells on. Full
 /// mode leases the spec's tiles whole.
 #[test]

@@ -149,6 +149,14 @@ impl Forecast {
             .is_some_and(|&by| by != u32::MAX && by as usize >= frontier)
     }
 
+    /// The canonical position of the orbit forecast to label the cell, when another one does.
+    pub fn labeller(&self, cell: u32) -> Option<usize> {
+        self.labeller
+            .get(cell as usize)
+            .filter(|&&by| by != u32::MAX)
+            .map(|&by| by as usize)
+    }
+
     /// Whether the forecast was made on a grid of `cells` cells.
     pub fn fits(&self, cells: usize) -> bool {
         self.labeller.len() == cells

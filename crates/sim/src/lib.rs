@@ -232,6 +232,46 @@ pub struct Point {
     /// The coordinator's busy share of the wall, in %.
     pub coordinator_busy_pct: f64,
     pub coordinator_us_per_outcome: f64,
+    /// [`open_share`] of as many cells as these workers' lanes run orbits at once.
+    pub open_share: f64,
+}
+
+/// Frontiers [`open_share`] samples, spread evenly over a run's needed orbits.
+const OPEN_SHARE_FRONTIERS: usize = 256;
+
+/// Of the first `n` cells past a commit frontier that no committed orbit labels, the share
+/// that need their own orbit, by the labels of the sequential rule (`labels`, a finished
+/// run's [`Forecast`]), averaged over frontiers at needed orbits sampled evenly. A schedule
+/// without a forecast that keeps `n` orbits in flight starts them on such cells, and the
+/// others' orbits are wasted as soon as an orbit still running labels their cells: this share
+/// is about the most of its steps that can be needed ones.
+pub fn open_share(grid: &Grid, labels: &Forecast, n: usize) -> f64 {
+    let order = grid.canonical();
+    let needed: Vec<usize> = (0..order.len())
+        .filter(|&p| labels.labeller(order[p]).is_none())
+        .collect();
+    let stride = needed.len().div_ceil(OPEN_SHARE_FRONTIERS).max(1);
+    let (mut open, mut own) = (0usize, 0usize);
+    for &frontier in needed.iter().step_by(stride) {
+        let mut seen = 0;
+        for &cell in &order[frontier + 1..] {
+            if seen == n {
+                break;
+            }
+            match labels.labeller(cell) {
+                None => own += 1,
+                Some(by) if by >= frontier => {}
+                Some(_) => continue,
+            }
+            seen += 1;
+        }
+        open += seen;
+    }
+    if open == 0 {
+        1.0
+    } else {
+        own as f64 / open as f64
+    }
 }
 
 /// A spec and parameters, with the orbits traced so far (shared by every worker count).
@@ -642,6 +682,12 @@ impl Simulation {
     ) -> Result<Vec<Point>, String> {
         let one = self.run(1)?;
         let sequential = self.sequential();
+        let labels: Vec<Forecast> =
+            Self::sequential_ledgers(&self.grid, self.spec.grid.mode, &mut self.traces)
+                .iter()
+                .map(Ledger::forecast)
+                .collect();
+        let in_flight = self.params.threads * self.lanes;
         let longest_s = sequential.longest_steps as f64 * self.lane_step_ns() * 1e-9;
         let mut points = Vec::new();
         for &w in workers {
@@ -658,6 +704,11 @@ impl Simulation {
                 coordinator_busy_pct: 100.0 * stats.coordinator_busy_s / stats.wall_s.max(1e-12),
                 coordinator_us_per_outcome: 1e6 * stats.coordinator_cpu_s
                     / stats.outcomes.max(1) as f64,
+                open_share: labels
+                    .iter()
+                    .map(|l| open_share(&self.grid, l, w * in_flight))
+                    .sum::<f64>()
+                    / labels.len().max(1) as f64,
                 stats,
             };
             each(&point);
@@ -729,6 +780,45 @@ mod tests {
             coordinator_ns: Some(20_000),
             ..Params::default()
         }
+    }
+
+    /// Labels of a sequential run where the orbit at position 0 labels positions 2 and 5, the
+    /// one at 3 labels 4 and 7, and every other orbit labels nothing else. With one cell past
+    /// each frontier: 0, 1 and every needed one from 6 on see a needed cell next, 3 sees 4
+    /// (its own orbit's), the last sees none.
+    #[test]
+    fn the_open_share_counts_needed_cells_among_those_no_committed_orbit_labels() {
+        let grid = Grid::new(0.125, 6, 6, (-0.43, 0.67), (-0.5, 0.5), (3, 3));
+        let order = grid.canonical().to_vec();
+        let len = order.len();
+        assert!(len >= 10, "{len} cells");
+        let mut ledger = Ledger::new(&grid, Mode::FastPss);
+        for (p, &cell) in order.iter().enumerate() {
+            let visited = match p {
+                0 => vec![order[2], order[5]],
+                3 => vec![order[4], order[7]],
+                _ => Vec::new(),
+            };
+            ledger.offer(salient_grid::Outcome {
+                cell,
+                class: None,
+                status: salient_core::Status::Ok,
+                sali: 1.0,
+                visited,
+                steps: 1,
+                t_end: 1.0,
+                checkpoints: Vec::new(),
+            });
+        }
+        let labels = ledger.forecast();
+        assert_eq!(labels.labeller(order[7]), Some(3));
+        let share = open_share(&grid, &labels, 1);
+        assert!(
+            (share - (len - 6) as f64 / (len - 5) as f64).abs() < 1e-12,
+            "{share}"
+        );
+        // With nothing in flight past the frontier there is nothing to waste.
+        assert_eq!(open_share(&grid, &labels, 0), 1.0);
     }
 
     #[test]
