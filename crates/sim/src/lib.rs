@@ -571,10 +571,13 @@ impl Simulation {
                 Event::Force { worker, gen } => ws[worker].on_force(world, gen),
             }
         }
-        coordinator
-            .stats
-            .timeline
-            .push(sample(scheduler, job, &ws, world));
+        // The final state, in place of a sample taken at the same instant.
+        let last = sample(scheduler, job, &ws, world);
+        let timeline = &mut coordinator.stats.timeline;
+        match timeline.last_mut() {
+            Some(s) if s.t_s >= last.t_s => *s = last,
+            _ => timeline.push(last),
+        }
         totals(coordinator, &ws)
     }
 
