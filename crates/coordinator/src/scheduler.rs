@@ -18,11 +18,11 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tonic::Status;
 
 /// Fast PSS: cells of the canonical order in one lease unit (the coordinator's tile; the
-/// spec's tile sizes the embedded engine's work only). Each free worker slot takes the earliest
-/// unit with wanted cells, and a unit has one lease at a time, so the unit bounds how far past
-/// the frontier's cells a few workers must speculate: 400-cell tiles sent the second worker
-/// hundreds of cells ahead, where most cells are labelled meanwhile. Fixed, not sized by the
-/// workers, so that a restarted coordinator reads the stored attempts of the same units.
+/// spec's tile sizes the embedded engine's work only). A worker's slot takes the earliest
+/// units with wanted cells, and a unit has one lease at a time, so the unit bounds how far
+/// past the frontier the next worker must go: with units of a 400-cell spec tile it would
+/// start hundreds of cells ahead, where most cells are labelled meanwhile. Fixed, not sized by
+/// the workers, so that a restarted coordinator reads the stored attempts of the same units.
 /// 16 cells (four batches of AVX2 lanes) ran faster at 4–64 simulated workers than 4, 8
 /// or 400 (figures: docs/performance.md).
 pub const FAST_PSS_LEASE_CELLS: usize = 16;
