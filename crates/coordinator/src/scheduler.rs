@@ -18,7 +18,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tonic::Status;
 
 /// Fast PSS: cells of the canonical order in one lease unit (the coordinator's tile; the
-/// spec's tile sizes the embedded engine's work only). A worker's slot takes the earliest
+/// spec's tile sizes full-mode leases only). A worker's slot takes the earliest
 /// units with wanted cells, and a unit has one lease at a time, so the unit bounds how far
 /// past the frontier the next worker must go: with units of a 400-cell spec tile it would
 /// start hundreds of cells ahead, where most cells are labelled meanwhile. Fixed, not sized by
