@@ -212,12 +212,14 @@ fn the_simulator_predicts_loopback_runs_of_one_and_two_workers() {
             "{} worker(s): simulated (wall s, steps) {p:?}, real {r:?}",
             w + 1
         );
-        assert!(
-            !steps_agree(sequential, r.1),
-            "{} worker(s): the sequential rule's {sequential} steps are close to the real {r:?}",
-            w + 1
-        );
     }
+    // A simulation blind to speculation would predict the sequential rule's steps: two workers
+    // integrate well beyond them (one worker's 16-cell leases come within the tolerance).
+    assert!(
+        !steps_agree(sequential, real[1].1),
+        "2 workers: the sequential rule's {sequential} steps are close to the real {:?}",
+        real[1]
+    );
     assert!(
         !(wall_agrees(no_latency[0].0, real[0].0) && wall_agrees(no_latency[1].0, real[1].0)),
         "a simulation without latency agrees too: {no_latency:?} against {real:?}"
