@@ -267,7 +267,8 @@ fn snapshot(s: &Scheduler, job: u64) -> String {
     format!("{st:?}")
 }
 
-fn lease_one(s: &mut Scheduler, w: &str) -> v1::Lease {
+/// The leases one poll of a free slot brings.
+fn poll_leases(s: &mut Scheduler, w: &str) -> Vec<v1::Lease> {
     s.poll(&v1::PollRequest {
         worker_id: w.into(),
         free_slots: 1,
@@ -275,7 +276,10 @@ fn lease_one(s: &mut Scheduler, w: &str) -> v1::Lease {
     })
     .unwrap()
     .leases
-    .remove(0)
+}
+
+fn lease_one(s: &mut Scheduler, w: &str) -> v1::Lease {
+    poll_leases(s, w).remove(0)
 }
 
 /// Fast PSS: leases cut the canonical order into units of `FAST_PSS_LEASE_CELLS`, whatever the
@@ -309,15 +313,7 @@ fn fast_pss_leases_small_units_of_the_order_and_fill_a_batch_from_several() {
         "the grid must hold more than a spec tile"
     );
     let (a, b) = (register(&mut s), register(&mut s));
-    let poll = |s: &mut Scheduler, w: &str| {
-        s.poll(&v1::PollRequest {
-            worker_id: w.into(),
-            free_slots: 1,
-            ..Default::default()
-        })
-        .unwrap()
-        .leases
-    };
+    let poll = poll_leases;
     let first = poll(&mut s, &a);
     assert_eq!(first.len(), 3, "a batch of 2.5 units takes three leases");
     let cells: Vec<u32> = first.iter().flat_map(|l| l.cells.clone()).collect();

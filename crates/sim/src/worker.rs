@@ -9,15 +9,9 @@ use salient_grid::executor::{Claims, LocalLedger, OrbitTrace, Verdict};
 use salient_grid::Mode;
 use salient_proto::v1;
 use salient_proto::{outcome_from_wire, push_partial};
-use salient_worker::free_slots;
+use salient_worker::{crossings_of_held, free_slots, lease_key, LeaseKey};
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::sync::Arc;
-
-type LeaseKey = (u64, u32, u32, u32);
-
-fn lease_key(l: &v1::TileRef) -> LeaseKey {
-    (l.job, l.run, l.tile, l.attempt)
-}
 
 /// How long an idle stream whose waiting cells are all deferred waits before it starts the
 /// first anyway: the worker's own wait.
@@ -255,18 +249,7 @@ impl SimWorker {
             reports: std::mem::take(&mut self.outbox),
             draining: false,
             // Those of held leases, as the worker sends them.
-            crossings: std::mem::take(&mut self.crossings)
-                .into_iter()
-                .filter_map(|((key, cell), (crossed, stopped))| {
-                    let lease = self.held.iter().find(|h| lease_key(h) == key)?;
-                    Some(v1::Crossings {
-                        lease: Some(*lease),
-                        cell,
-                        crossed,
-                        stopped,
-                    })
-                })
-                .collect(),
+            crossings: crossings_of_held(std::mem::take(&mut self.crossings), &self.held),
             relayed: self
                 .runs
                 .iter()

@@ -3,7 +3,7 @@
 //! what each reply says: answers to reports, skips, revokes, relayed outcomes.
 
 use crate::compute::{Done, Work};
-use crate::signals::{apply_relay, collect_partial, lease_key, Signals};
+use crate::signals::{apply_relay, collect_partial, crossings_of_held, lease_key, Signals};
 use crate::Options;
 use salient_grid::spec::{self, JobSpec};
 use salient_proto::v1;
@@ -321,18 +321,7 @@ impl Poller<'_> {
     /// The crossings of running orbits of held leases since the last poll.
     fn crossings(&self) -> Vec<v1::Crossings> {
         let taken = std::mem::take(&mut self.signals.lock().expect("signals").crossings);
-        taken
-            .into_iter()
-            .filter_map(|((key, cell), (crossed, stopped))| {
-                let lease = self.held.iter().find(|h| lease_key(h) == key)?;
-                Some(v1::Crossings {
-                    lease: Some(*lease),
-                    cell,
-                    crossed,
-                    stopped,
-                })
-            })
-            .collect()
+        crossings_of_held(taken, self.held)
     }
 
     /// A successful poll's reply: answers to reports, skips and revokes, new leases, relays.

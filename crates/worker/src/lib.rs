@@ -18,6 +18,7 @@ mod source;
 
 // The rules of the lease loop and the stream that the scaling simulator (salient-sim) replays.
 pub use lease_loop::{free_slots, HUNGRY_LEASES};
+pub use signals::{crossings_of_held, lease_key, LeaseKey};
 pub use source::IDLE_WAIT;
 
 use compute::{compute_thread, Done, Work};

@@ -31,7 +31,7 @@ pub(crate) struct Signals {
     pub(crate) crossings: HashMap<(LeaseKey, u32), (Vec<u32>, bool)>,
 }
 
-pub(crate) type LeaseKey = (u64, u32, u32, u32);
+pub type LeaseKey = (u64, u32, u32, u32);
 
 /// A fast-PSS run's own ledger and how far it got in the coordinator's relayed outcomes (its
 /// `RelayMark`): kept together so that a ledger made afresh always starts from the beginning.
@@ -76,8 +76,28 @@ impl Signals {
     }
 }
 
-pub(crate) fn lease_key(l: &v1::TileRef) -> LeaseKey {
+pub fn lease_key(l: &v1::TileRef) -> LeaseKey {
     (l.job, l.run, l.tile, l.attempt)
+}
+
+/// The crossings of running orbits (by lease and orbit's cell: cells crossed, stopped) as a
+/// poll tells them: those of leases still `held`, each with its lease.
+pub fn crossings_of_held(
+    taken: impl IntoIterator<Item = ((LeaseKey, u32), (Vec<u32>, bool))>,
+    held: &[v1::TileRef],
+) -> Vec<v1::Crossings> {
+    taken
+        .into_iter()
+        .filter_map(|((key, cell), (crossed, stopped))| {
+            let lease = held.iter().find(|h| lease_key(h) == key)?;
+            Some(v1::Crossings {
+                lease: Some(*lease),
+                cell,
+                crossed,
+                stopped,
+            })
+        })
+        .collect()
 }
 
 /// Offers another worker's outcomes, relayed by the coordinator, to the run's own ledger; one
