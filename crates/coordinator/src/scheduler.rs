@@ -8,7 +8,7 @@ use crate::writer::{Deferred, StoreThread, Write};
 use prost::bytes::Bytes;
 use prost::Message;
 use salient_grid::spec::{self, JobSpec};
-use salient_grid::{Forecast, Grid, Ledger, OutcomeNews};
+use salient_grid::{takes_forecast, Forecast, Grid, Ledger, OutcomeNews};
 use salient_proto::v1;
 use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
 use salient_store::{JobState, Store, StoreError};
@@ -216,10 +216,14 @@ struct Run {
     /// report must still change nothing).
     stored: Vec<bool>,
     checkpoints: usize,
-    /// Who is forecast to label each cell (a similar finished run): cells forecast to be
-    /// labelled by an orbit not yet committed are leased only once that orbit is, and the
-    /// others from anywhere in the grid rather than a window past the frontier.
+    /// Who is forecast to label each cell (a similar finished run, [`hand_forecast`]): cells
+    /// the forecast defers ([`Forecast::defers`]) are leased only once their labeller turns
+    /// out not to label them, and the others from anywhere in the grid rather than a window
+    /// past the frontier.
     forecast: Option<Forecast>,
+    /// The run of the job whose labellers are the forecast (`None`: none, or one given by
+    /// [`Scheduler::set_forecast`]).
+    forecast_from: Option<usize>,
     /// Orbits a worker thread of an adaptive method runs at once (one, or a few SIMD lanes);
     /// `None` for tangent-map methods, whose threads run a batch of lanes. Fast-PSS leases
     /// are sized by it.
@@ -251,6 +255,42 @@ struct Job {
 struct Replies {
     acknowledged: Vec<v1::TileRef>,
     stale: Vec<v1::TileRef>,
+}
+
+/// Fast PSS: gives the labellers of finished run `from` as a forecast ([`Run::forecast`]) to
+/// the unfinished runs of the job it resembles: the same τ and t_final (another method or δ,
+/// as `salient run` does in a sweep: integrators that agree on the orbits agree on the
+/// labellers), or the same method and τ to a longer t_final (the same orbits, longer: each
+/// crosses again every cell it crossed). Runs whose threads keep one orbit in flight take none
+/// (`takes_forecast`), and one given by [`Scheduler::set_forecast`] stays. The last run
+/// finished gives the forecast.
+fn hand_forecast(spec: &JobSpec, runs: &mut [Run], from: usize) {
+    let source = &spec.runs[from];
+    let resembles = |target: &spec::RunSpec| {
+        source.tau == target.tau
+            && (source.t_final == target.t_final
+                || (source.method == target.method
+                    && source.delta == target.delta
+                    && source.t_final < target.t_final))
+    };
+    let takers: Vec<usize> = (0..runs.len())
+        .filter(|&r| {
+            r != from
+                && !runs[r].done
+                && (runs[r].forecast.is_none() || runs[r].forecast_from.is_some())
+                && resembles(&spec.runs[r])
+                && takes_forecast(&spec.cell_run(r), spec.grid.mode)
+        })
+        .collect();
+    if takers.is_empty() {
+        return;
+    }
+    let forecast = runs[from].ledger.forecast();
+    for r in takers {
+        tracing::debug!(run = r, from, "forecast from a finished run");
+        runs[r].forecast = Some(forecast.clone());
+        runs[r].forecast_from = Some(from);
+    }
 }
 
 fn now_ms() -> i64 {
@@ -302,6 +342,7 @@ impl Run {
             unrelayed: HashMap::new(),
             stored: vec![false; grid.cells()],
             forecast: None,
+            forecast_from: None,
             checkpoints: cell_run.checkpoint_steps().len(),
             adaptive_orbits_per_thread: match &cell_run.run.method {
                 salient_core::Method::TangentMap(_) => None,
@@ -393,7 +434,6 @@ impl Run {
     /// The cells of tile `t` that need their own orbit now, and whether the forecast held
     /// back others that do.
     fn wanted(&self, t: usize) -> (Vec<u32>, bool) {
-        let frontier = self.ledger.frontier();
         let mut deferred = false;
         let cells = self
             .grid
@@ -405,7 +445,7 @@ impl Run {
                 let defers = self
                     .forecast
                     .as_ref()
-                    .is_some_and(|f| f.defers(c, frontier));
+                    .is_some_and(|f| f.defers(c, &self.ledger));
                 deferred |= defers;
                 !defers
             })
@@ -598,6 +638,11 @@ impl Scheduler {
                 t.attempt = attempt;
             }
         }
+        for from in 0..runs.len() {
+            if runs[from].done {
+                hand_forecast(&spec, &mut runs, from);
+            }
+        }
         for t in runs.iter_mut().flat_map(|r| r.tiles.iter_mut()) {
             t.valid = t.attempt;
             t.attempt += 1;
@@ -629,7 +674,13 @@ impl Scheduler {
             ));
         }
         r.forecast = Some(forecast);
+        r.forecast_from = None;
         Ok(())
+    }
+
+    /// The run of the job whose labellers run `run` takes as its forecast, if one does.
+    pub fn forecast_from(&self, job: u64, run: usize) -> Option<usize> {
+        self.jobs.get(&job)?.runs.get(run)?.forecast_from
     }
 
     /// Validates a spec and queues it; returns the job id and the spec's warnings.
@@ -903,10 +954,12 @@ impl Scheduler {
         let Some(job) = self.jobs.get_mut(&id) else {
             return Ok(());
         };
+        let mut finished = Vec::new();
         for (index, run) in job.runs.iter_mut().enumerate() {
             if run.done || !run.ledger.done() {
                 continue;
             }
+            finished.push(index);
             let wall_s = run.elapsed();
             self.store
                 .add_counter(id, &counter(index, "wall_ms"), (wall_s * 1e3) as u64)
@@ -938,6 +991,9 @@ impl Scheduler {
                 crossings = run.crossings_said,
                 "run done"
             );
+        }
+        for from in finished {
+            hand_forecast(&job.spec, &mut job.runs, from);
         }
         if job.runs.iter().all(|r| r.done) && !job.state.is_terminal() {
             job.state = JobState::Done;
@@ -973,7 +1029,8 @@ impl Scheduler {
                 // Speculation past the frontier is bounded (see WINDOW_CELLS_MIN): further
                 // cells are likely to be labelled meanwhile, and scanning the whole grid on
                 // every poll of an idle worker costs the coordinator more CPU than the leases
-                // themselves. (Later runs of the job are scanned next: their frontier is
+                // themselves. With a forecast, the cells it does not hold back are worth taking
+                // from anywhere. (Later runs of the job are scanned next: their frontier is
                 // certain work.)
                 let ahead = (WINDOW_CELLS_PER_WORKER * workers.max(1)).max(WINDOW_CELLS_MIN);
                 let last = if run.forecast.is_some() {

@@ -213,6 +213,30 @@ fn a_forecast_leases_only_the_cells_that_need_their_own_orbit() {
     assert!(dropped(&s, job)[0] > 0);
 }
 
+/// A finished run forecasts the unfinished runs it resembles: the longer run of its method
+/// and τ (the same orbits, longer), not a method whose threads run one orbit at a time; the
+/// labels stay the embedded run's.
+#[test]
+fn a_finished_run_forecasts_the_longer_run_of_its_method() {
+    let json =
+        spec_json("fast-pss", r#""tm-sbab2c", "dop853""#).replace("[200.0]", "[50.0, 200.0]");
+    let spec = spec::parse(&json, true).unwrap();
+    let index = |method: &str, t: f64| {
+        (0..spec.runs.len())
+            .find(|&r| spec.runs[r].method.name() == method && spec.runs[r].t_final == t)
+            .unwrap()
+    };
+    let (short, long) = (index("tm-sbab2c", 50.0), index("tm-sbab2c", 200.0));
+    let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
+    let (job, _) = s.submit(&json).unwrap();
+    assert_eq!(s.forecast_from(job, long), None);
+    drive(&mut s, job, 3, None);
+    assert_eq!(s.forecast_from(job, long), Some(short));
+    assert_eq!(s.forecast_from(job, short), None);
+    assert_eq!(s.forecast_from(job, index("dop853", 200.0)), None);
+    assert_eq!(labels(&s, job), embedded(&json));
+}
+
 #[test]
 fn a_restarted_scheduler_resumes_without_integrating_committed_cells_again() {
     let dir = tempfile::tempdir().unwrap();

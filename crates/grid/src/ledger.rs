@@ -139,14 +139,23 @@ pub struct Forecast {
 }
 
 impl Forecast {
-    /// Whether the cell is forecast to be labelled by an orbit at or after canonical position
-    /// `frontier` (one not yet committed): its own orbit is then probably wasted for now.
-    /// Never true of the frontier cell itself (its labeller would lie before it), so a
-    /// scheduler that defers such cells still makes progress.
-    pub fn defers(&self, cell: u32, frontier: usize) -> bool {
-        self.labeller
-            .get(cell as usize)
-            .is_some_and(|&by| by != u32::MAX && by as usize >= frontier)
+    /// Whether the cell's own orbit is probably wasted for now: the forecast names another orbit
+    /// as its labeller, and that orbit may still need its own run (its position is not
+    /// resolved, and no earlier orbit has labelled or claimed its cell, and its own outcome is
+    /// not in). An orbit that labels a cell in a shorter run of the same grid crosses it again
+    /// in a longer one, so the cell needs its own orbit only if its labeller turns out not to
+    /// need one: the cell is released as soon as the ledger shows that, not when the frontier
+    /// reaches the labeller. Never true of the frontier cell (its labeller would lie before
+    /// it), so a scheduler that defers such cells still makes progress.
+    pub fn defers(&self, cell: u32, ledger: &Ledger) -> bool {
+        let Some(by) = self.labeller(cell) else {
+            return false;
+        };
+        if by < ledger.frontier() {
+            return false;
+        }
+        let labeller = ledger.canonical[by];
+        ledger.flags[labeller as usize] & (LABELLED | PENDING) == 0 && !ledger.is_claimed(labeller)
     }
 
     /// The canonical position of the orbit forecast to label the cell, when another one does.
@@ -887,7 +896,7 @@ mod tests {
     }
 
     #[test]
-    fn a_forecast_defers_a_cell_only_while_its_labeller_has_not_committed() {
+    fn a_forecast_defers_a_cell_only_while_its_labeller_may_still_need_its_orbit() {
         let grid = Grid::new(0.125, 12, 14, (-0.43, 0.67), (-0.5, 0.5), (3, 4));
         let mut finished = Ledger::new(&grid, Mode::FastPss);
         while !finished.done() {
@@ -897,26 +906,55 @@ mod tests {
         let forecast = finished.forecast();
         assert!(forecast.fits(grid.cells()) && !forecast.fits(grid.cells() + 1));
         let canon = grid.canonical();
-        let mut deferred = 0;
-        for (pos, &c) in canon.iter().enumerate() {
+        let labeller = |c: u32| {
             let source = finished.label(c).unwrap().source;
-            let by = canon.iter().position(|&x| x == source).unwrap();
-            assert!(
-                by <= pos,
-                "a label comes from an earlier orbit or the cell's own"
-            );
-            for frontier in 0..=canon.len() {
-                let want = by != pos && by >= frontier;
-                assert_eq!(forecast.defers(c, frontier), want, "cell {c} at {frontier}");
+            canon.iter().position(|&x| x == source).unwrap()
+        };
+        // The same run again, outcome by outcome: a cell is deferred while its forecast
+        // labeller has not run, and never once the frontier reaches it.
+        let mut again = Ledger::new(&grid, Mode::FastPss);
+        let mut deferred = 0;
+        loop {
+            let frontier = again.frontier();
+            for (pos, &c) in canon.iter().enumerate() {
+                let by = labeller(c);
+                assert!(
+                    by <= pos,
+                    "a label comes from an earlier orbit or the cell's own"
+                );
+                let want = by != pos && by >= frontier && !again.has_outcome(canon[by]);
+                assert_eq!(forecast.defers(c, &again), want, "cell {c} at {frontier}");
                 deferred += usize::from(want);
+                if pos == frontier {
+                    assert!(!forecast.defers(c, &again));
+                }
             }
-            // The frontier cell is never deferred, so a scheduler that defers makes progress.
-            assert!(!forecast.defers(c, pos));
+            if again.done() {
+                break;
+            }
+            let next = again.needed(1, &|_| false)[0];
+            again.offer(fake(&grid, 7, next));
         }
         assert!(deferred > 0);
         for c in (0..grid.cells() as u32).filter(|&c| !grid.is_compatible(c)) {
-            assert!(!forecast.defers(c, 0));
+            assert!(!forecast.defers(c, &Ledger::new(&grid, Mode::FastPss)));
         }
+        // A labeller whose cell an earlier outcome claims may not need its orbit: the cells it
+        // was forecast to label are released at once, far ahead of the frontier.
+        let fresh = Ledger::new(&grid, Mode::FastPss);
+        let (c, by) = canon
+            .iter()
+            .enumerate()
+            .map(|(pos, &c)| (c, labeller(c), pos))
+            .find(|&(c, by, _)| by > 1 && forecast.defers(c, &fresh))
+            .map(|(c, by, _)| (c, by))
+            .expect("a deferred cell whose labeller is not among the first two");
+        let mut claimer = fake(&grid, 7, canon[0]);
+        claimer.visited = vec![canon[by]];
+        let mut claimed = Ledger::new(&grid, Mode::FastPss);
+        claimed.offer(claimer);
+        assert!(claimed.is_claimed(canon[by]) || claimed.is_labelled(canon[by]));
+        assert!(!forecast.defers(c, &claimed));
     }
 
     #[test]

@@ -124,8 +124,7 @@ impl Engine<'_, '_> {
         // FORECAST_PATIENCE of them the first is taken: a poor forecast (another τ's labels,
         // say) would otherwise send the lanes ever further ahead of the frontier while the
         // cells it needs wait.
-        let frontier = ledger.frontier();
-        let defers = |c: u32| self.forecast.is_some_and(|f| f.defers(c, frontier));
+        let defers = |c: u32| self.forecast.is_some_and(|f| f.defers(c, ledger));
         let (mut cell, mut fallback, mut deferred) = (None, None, 0);
         ledger.scan_needed(|c| {
             if defers(c) {
