@@ -323,6 +323,35 @@ fn a_damaged_store_is_refused_with_a_message_and_never_served() {
     assert!(text.contains("restore it from a backup"), "{text}");
 }
 
+/// The poll interval is bounded, and a worker is never taken for dead within 5 polls.
+#[test]
+fn coordinator_timing_flags_are_checked_before_it_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("c.db");
+    for (flags, says) in [
+        (
+            &["--poll-ms", "5"][..],
+            "--poll-ms must be in 10..=5000 (got 5)",
+        ),
+        (
+            &["--poll-ms", "2000"][..],
+            "--worker-timeout-seconds must be at least 5 polls of --poll-ms (10 s; got 5)",
+        ),
+    ] {
+        let out = output_within(
+            Command::new(salient_path())
+                .args(["coordinator", "--listen", "127.0.0.1:0", "--db"])
+                .arg(&db)
+                .args(flags),
+            REFUSAL_WITHIN,
+        );
+        let text = stderr(&out);
+        assert_eq!(out.status.code(), Some(2), "{text}");
+        assert!(text.contains(says), "{text}");
+        assert!(!db.exists(), "no store is made for a refused start");
+    }
+}
+
 #[test]
 fn exposed_listeners_need_a_token_and_failed_logins_are_logged() {
     let dir = tempfile::tempdir().unwrap();

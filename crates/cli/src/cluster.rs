@@ -37,9 +37,14 @@ pub struct CoordinatorArgs {
     #[arg(long, default_value_t = 30.0)]
     lease_seconds: f64,
     /// Seconds without a poll after which a worker is taken for dead and its leases go to
-    /// other workers (workers poll every 0.2 s while busy).
+    /// other workers; at least 5 of --poll-ms.
     #[arg(long, default_value_t = 5.0)]
     worker_timeout_seconds: f64,
+    /// Milliseconds between the polls of a busy worker, told to workers as they register
+    /// (10–5000). Shorter: other workers hear of outcomes sooner and drop less work; each poll
+    /// costs the coordinator CPU (`salient simulate --poll-ms` predicts the trade).
+    #[arg(long, default_value_t = 200)]
+    poll_ms: u64,
     /// Seconds between progress log lines of each running run.
     #[arg(long, default_value_t = 10.0)]
     progress_seconds: f64,
@@ -220,7 +225,6 @@ pub fn runtime_for(threads: usize) -> CliResult<tokio::runtime::Runtime> {
 
 pub fn coordinator(args: CoordinatorArgs) -> CliResult<()> {
     let lease = seconds_in("--lease-seconds", args.lease_seconds, 0.01)?;
-    // At least 5 polls of a busy worker.
     let worker_timeout = seconds_in("--worker-timeout-seconds", args.worker_timeout_seconds, 1.0)?;
     let progress = seconds_in("--progress-seconds", args.progress_seconds, 0.01)?;
     let tls = match (&args.tls_cert, &args.tls_key) {
@@ -232,6 +236,19 @@ pub fn coordinator(args: CoordinatorArgs) -> CliResult<()> {
     };
     let token = token(args.token, args.token_file.as_ref())?;
     check_exposure(args.listen, token.is_some(), tls.is_some(), args.insecure)?;
+    if !(10..=5000).contains(&args.poll_ms) {
+        return Err(CliError::Usage(format!(
+            "--poll-ms must be in 10..=5000 (got {})",
+            args.poll_ms
+        )));
+    }
+    if worker_timeout * 1e3 < 5.0 * args.poll_ms as f64 {
+        return Err(CliError::Usage(format!(
+            "--worker-timeout-seconds must be at least 5 polls of --poll-ms ({} s; got {})",
+            5.0 * args.poll_ms as f64 / 1e3,
+            args.worker_timeout_seconds
+        )));
+    }
     if !(1..=100_000).contains(&args.lease_cells_per_thread) {
         return Err(CliError::Usage(format!(
             "--lease-cells-per-thread must be in 1..=100000 (got {})",
@@ -245,7 +262,7 @@ pub fn coordinator(args: CoordinatorArgs) -> CliResult<()> {
         tls,
         config: Config {
             lease: Duration::from_secs_f64(lease),
-            poll: Duration::from_millis(200),
+            poll: Duration::from_millis(args.poll_ms),
             worker_timeout: Duration::from_secs_f64(worker_timeout),
             lease_cells_per_thread: args.lease_cells_per_thread,
             max_cells: args.max_cells,
