@@ -944,10 +944,8 @@ mod tests {
         let fresh = Ledger::new(&grid, Mode::FastPss);
         let (c, by) = canon
             .iter()
-            .enumerate()
-            .map(|(pos, &c)| (c, labeller(c), pos))
-            .find(|&(c, by, _)| by > 1 && forecast.defers(c, &fresh))
-            .map(|(c, by, _)| (c, by))
+            .map(|&c| (c, labeller(c)))
+            .find(|&(c, by)| by > 1 && forecast.defers(c, &fresh))
             .expect("a deferred cell whose labeller is not among the first two");
         let mut claimer = fake(&grid, 7, canon[0]);
         claimer.visited = vec![canon[by]];

@@ -120,10 +120,10 @@ impl Engine<'_, '_> {
                 || ledger.is_claimed(c)
                 || claims.running_crosser(grid, c).is_some()
         };
-        // Cells a forecast says an orbit not yet committed will label come last, but after
-        // FORECAST_PATIENCE of them the first is taken: a poor forecast (another τ's labels,
-        // say) would otherwise send the lanes ever further ahead of the frontier while the
-        // cells it needs wait.
+        // Cells a forecast says another orbit will label come last while that orbit may still
+        // need its own run (`Forecast::defers`), but after FORECAST_PATIENCE of them the first
+        // is taken: a poor forecast (another τ's labels, say) would otherwise send the lanes
+        // ever further ahead of the frontier while the cells it needs wait.
         let defers = |c: u32| self.forecast.is_some_and(|f| f.defers(c, ledger));
         let (mut cell, mut fallback, mut deferred) = (None, None, 0);
         ledger.scan_needed(|c| {
