@@ -16,3 +16,4 @@ mod readme_cli;
 mod run_cli;
 mod simulate_cli;
 mod soak_cli;
+mod table2_script;
