@@ -7,8 +7,10 @@
 #
 #   scripts/reproduce-table2.sh [OPTIONS] [METHOD [T_FINAL]]
 #
-#   METHOD      one method's rows only (tm-sbab2c, dop853, taylor, taylor-dd); default: all four
-#   T_FINAL     one t_final only (1e4, 1e5, 1e6); default: all three
+#   METHOD      one method's rows only (tm-sbab2c, dop853, taylor, taylor-dd); default (or all):
+#               all four
+#   T_FINAL     one t_final only (1e4, 1e5, 1e6); default (or all): all three
+#   --tau T     one τ only (0.5 or 0.01); default: both
 #   --out DIR   where the sweeps and the assembled table go (default: out/table2)
 #   --energy-check salient|paper|both
 #               salient: orbits whose |ΔH/H| exceeds 1e-2 stop as `energy-drift` (the default);
@@ -28,7 +30,8 @@ cells=400
 bin=${SALIENT_BIN:-}
 method=""
 t_only=""
-usage() { sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//' >&2; exit "$1"; }
+tau_only=""
+usage() { sed -n '2,23p' "$0" | sed 's/^# \{0,1\}//' >&2; exit "$1"; }
 while [ $# -gt 0 ]; do
   case $1 in
     --out) out=${2:?--out needs a folder}; shift 2 ;;
@@ -46,6 +49,12 @@ while [ $# -gt 0 ]; do
       fi
       shift 2 ;;
     --bin) bin=${2:?--bin needs a path}; shift 2 ;;
+    --tau)
+      case ${2:-} in
+        0.5|0.01) tau_only=$2 ;;
+        *) echo "--tau must be 0.5 or 0.01 (got '${2:-}')" >&2; exit 2 ;;
+      esac
+      shift 2 ;;
     -h|--help) usage 0 ;;
     -*) echo "unknown option $1" >&2; usage 2 ;;
     *)
@@ -56,6 +65,8 @@ while [ $# -gt 0 ]; do
       shift ;;
   esac
 done
+[ "$method" = all ] && method=""
+[ "$t_only" = all ] && t_only=""
 case ${method:-all} in
   all|tm-sbab2c|dop853|taylor|taylor-dd) ;;
   *) echo "METHOD must be tm-sbab2c, dop853, taylor or taylor-dd (got '$method')" >&2; exit 2 ;;
@@ -93,6 +104,7 @@ for check in $checks; do
   for t in 1e4 1e5 1e6; do
     [ -n "$t_only" ] && [ "$t" != "$t_only" ] && continue
     for tau in 0.5 0.01; do
+      [ -n "$tau_only" ] && [ "$tau" != "$tau_only" ] && continue
       dir=$out/$check/tau$tau-t$t$suffix
       if [ -f "$dir/table.json" ]; then
         echo "finished already: $dir" >&2
