@@ -26,24 +26,19 @@ fn reproduce(out: &Path, extra: &[&str]) -> Output {
     done
 }
 
-/// The rows of the assembled table (every sweep's table under its heading).
-fn rows(out: &Path) -> Vec<String> {
+/// The lines of the assembled table (every sweep's table under its heading) that start with
+/// `prefix`: its rows ("| 0.") or its headings ("### ").
+fn lines_of(out: &Path, prefix: &str) -> Vec<String> {
     std::fs::read_to_string(out.join("table2.md"))
         .unwrap()
         .lines()
-        .filter(|l| l.starts_with("| 0."))
+        .filter(|l| l.starts_with(prefix))
         .map(str::to_string)
         .collect()
 }
 
-/// The headings of the assembled table, in order.
-fn headings(out: &Path) -> Vec<String> {
-    std::fs::read_to_string(out.join("table2.md"))
-        .unwrap()
-        .lines()
-        .filter(|l| l.starts_with("### "))
-        .map(str::to_string)
-        .collect()
+fn rows(out: &Path) -> Vec<String> {
+    lines_of(out, "| 0.")
 }
 
 #[test]
@@ -55,7 +50,7 @@ fn the_table2_script_resumes_with_the_sweeps_it_did_not_finish() {
     assert_eq!(said.matches("running: ").count(), 4, "{said}");
     let all = rows(&out);
     assert_eq!(all.len(), 4, "{all:?}");
-    let order = headings(&out);
+    let order = lines_of(&out, "### ");
     assert_eq!(order.len(), 4, "{order:?}");
     assert!(order[0].contains("τ = 0.5") && order[0].ends_with("energy check 1e-2"));
     assert!(order[3].contains("τ = 0.01") && order[3].contains("energy check off"));
