@@ -1,6 +1,7 @@
-//! `salient precision` end to end: rows for every setting, files, and bad input.
+//! `salient precision` end to end: rows for every setting, files, and bad input; `--grid`:
+//! whole grids against a cached or given reference.
 
-use salient_tests::{json_stdout, salient};
+use salient_tests::{json_stdout, run_dirs, salient, write_spec};
 
 #[test]
 fn precision_runs_every_setting_against_the_reference() {
@@ -78,5 +79,170 @@ fn precision_refuses_bad_orbits_and_times() {
             stderr.contains(flag) && stderr.trim().lines().count() == 1,
             "{args:?}: {stderr}"
         );
+    }
+}
+
+/// A 20×20 grid at t = 1e3 with a deliberately loose method beside a finer one.
+const SMALL_GRID: &str = r#"
+name = "small"
+[system]
+kind = "henon-heiles"
+energy = 0.125
+[grid]
+cells = [20, 20]
+tile = [10, 10]
+mode = "MODE"
+[sweep]
+method = ["tm-sbab2", "tm-sbab2c"]
+tau = [0.5, 0.05]
+t_final = [1e3]
+"#;
+
+fn grid_precision(spec: &str, extra: &[&str]) -> serde_json::Value {
+    let mut args = vec!["precision", "--grid", spec, "--json"];
+    args.extend_from_slice(extra);
+    json_stdout(&salient(&args))
+}
+
+fn differing(row: &serde_json::Value, against: &str) -> u64 {
+    row[against]["differing"].as_u64().unwrap()
+}
+
+#[test]
+fn grid_precision_counts_cells_against_a_cached_reference() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = write_spec(
+        dir.path(),
+        "small.toml",
+        &SMALL_GRID.replace("MODE", "fast-pss"),
+    );
+    let cache = dir.path().join("cache");
+    let out = dir.path().join("out");
+    let (cache_s, out_s) = (cache.to_str().unwrap(), out.to_str().unwrap());
+    let first = grid_precision(
+        &spec,
+        &[
+            "--cache",
+            cache_s,
+            "--out",
+            out_s,
+            "--fast-vs-full",
+            "--threads",
+            "2",
+        ],
+    );
+    let rows = first["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 4);
+    assert_eq!(first["references"][0]["origin"], "computed");
+    for row in rows {
+        let c = &row["against_reference"];
+        let pairs: u64 = c["pairs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["cells"].as_u64().unwrap())
+            .sum();
+        assert_eq!(pairs, differing(row, "against_reference"), "{row}");
+        assert!(c["compatible"].as_u64().unwrap() > 250, "{row}");
+        assert!(
+            row["fast_vs_full"]["compatible"] == c["compatible"],
+            "{row}"
+        );
+    }
+    // SBAB2 at τ = 0.5 is far from the tight reference.
+    let loose = rows
+        .iter()
+        .find(|r| r["method"] == "tm-sbab2" && r["tau"] == 0.5)
+        .unwrap();
+    assert!(differing(loose, "against_reference") > 0, "{loose}");
+    for f in [
+        "grid_precision.md",
+        "grid_precision.csv",
+        "grid_precision.json",
+        "misclassified_vs_cpu.png",
+    ] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    assert_eq!(run_dirs(&out).len(), 4);
+
+    // Again: the reference comes from the cache, and every count is the same.
+    let again = grid_precision(&spec, &["--cache", cache_s, "--fast-vs-full"]);
+    assert_eq!(again["references"][0]["origin"], "cached");
+    for (a, b) in rows.iter().zip(again["rows"].as_array().unwrap()) {
+        assert_eq!(a["against_reference"], b["against_reference"]);
+        assert_eq!(a["fast_vs_full"], b["fast_vs_full"]);
+    }
+}
+
+#[test]
+fn a_run_given_as_its_own_reference_differs_nowhere() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = write_spec(
+        dir.path(),
+        "full.toml",
+        &SMALL_GRID
+            .replace("MODE", "full")
+            .replace(r#"tau = [0.5, 0.05]"#, "tau = [0.5]"),
+    );
+    let out = dir.path().join("run");
+    let run = salient(&["run", &spec, "--out", out.to_str().unwrap()]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let sbab2 = &run_dirs(&out)[0];
+    let v = grid_precision(&spec, &["--reference", sbab2.to_str().unwrap()]);
+    let rows = v["rows"].as_array().unwrap();
+    assert_eq!(v["references"][0]["origin"], "given");
+    assert_eq!(differing(&rows[0], "against_reference"), 0, "{}", rows[0]);
+    assert_eq!(
+        rows[0]["against_reference"]["percent_errors"]["regular"],
+        0.0
+    );
+    // SBAB2C is another method: some cells differ from SBAB2's map.
+    assert!(differing(&rows[1], "against_reference") > 0, "{}", rows[1]);
+}
+
+#[test]
+fn grid_precision_refuses_a_reference_of_another_grid_or_without_classes() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = write_spec(
+        dir.path(),
+        "small.toml",
+        &SMALL_GRID.replace("MODE", "fast-pss"),
+    );
+    let other = write_spec(
+        dir.path(),
+        "other.toml",
+        &SMALL_GRID
+            .replace("MODE", "full")
+            .replace("cells = [20, 20]", "cells = [10, 20]"),
+    );
+    let out = dir.path().join("other");
+    assert!(salient(&["run", &other, "--out", out.to_str().unwrap()])
+        .status
+        .success());
+    let other_run = run_dirs(&out)[0].to_str().unwrap().to_string();
+    let empty = dir.path().to_str().unwrap().to_string();
+    for (args, says) in [
+        (
+            vec!["precision", "--grid", &spec, "--reference", &other_run],
+            "[10, 20]",
+        ),
+        (
+            vec!["precision", "--grid", &spec, "--reference", &empty],
+            "class.npy",
+        ),
+        (vec!["precision", "--reference", &other_run], "--grid"),
+        (
+            vec!["precision", "--grid", &spec, "--orbit", "R1"],
+            "--orbit",
+        ),
+    ] {
+        let o = salient(&args);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {stderr}");
+        assert!(stderr.contains(says), "{args:?}: {stderr}");
     }
 }

@@ -7,6 +7,7 @@
 mod client;
 #[cfg(feature = "distributed")]
 mod cluster;
+mod grid_precision;
 mod human;
 mod orbit;
 mod output;
@@ -49,7 +50,8 @@ enum Command {
     /// sweep (embedded: everything in this process).
     Run(run::RunArgs),
     /// Speed against error: every method over a ladder of τ or δ on one orbit, against a
-    /// double-double Taylor reference.
+    /// double-double Taylor reference; or, with --grid, every run of a sweep cell by cell
+    /// against a reference run of the same grid.
     Precision(precision::PrecisionArgs),
     #[cfg(feature = "distributed")]
     #[command(flatten)]

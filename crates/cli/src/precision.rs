@@ -1,4 +1,5 @@
-//! `salient precision`: speed against error for every method on one orbit.
+//! `salient precision`: speed against error for every method on one orbit (`--grid`: for
+//! whole grids, in grid_precision.rs).
 
 use crate::output::{print_result, write_tables, Staged};
 use crate::usage::{finite, runtime, CliError, CliResult};
@@ -25,7 +26,28 @@ pub struct PrecisionArgs {
     /// Energy of the orbit.
     #[arg(long, default_value_t = 0.125)]
     energy: f64,
-    /// Write precision.md, precision.csv, precision.json and work_precision.png here.
+    /// Compare whole grids instead of one orbit: run this job spec's sweep and compare every
+    /// run's class per cell with a reference run of the same grid.
+    #[arg(long, value_name = "SPEC", conflicts_with_all = ["orbit", "t_final", "energy"])]
+    grid: Option<PathBuf>,
+    /// With --grid: a run folder of the same grid (holding class.npy) to compare every run
+    /// with, instead of the default reference (full mode, f64 Taylor at δ = 1e-13, one per
+    /// t_final, computed once and cached).
+    #[arg(long, value_name = "DIR", requires = "grid")]
+    reference: Option<PathBuf>,
+    /// With --grid: where computed references are kept (default: $SALIENT_CACHE, else
+    /// $XDG_CACHE_HOME/salient, else ~/.cache/salient).
+    #[arg(long, value_name = "DIR", requires = "grid")]
+    cache: Option<PathBuf>,
+    /// With --grid and a fast-PSS spec: also run each member in full mode (cached like the
+    /// references) and report how many cells fast PSS itself changes.
+    #[arg(long, requires = "grid")]
+    fast_vs_full: bool,
+    /// With --grid: worker threads (default: every core).
+    #[arg(long, requires = "grid")]
+    threads: Option<usize>,
+    /// Write the tables and plot here: precision.* and work_precision.png for an orbit;
+    /// grid_precision.*, misclassified_vs_cpu.png and the runs' folders with --grid.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Print exactly one JSON object on stdout.
@@ -93,6 +115,17 @@ fn row_json(r: &Row) -> Value {
 }
 
 pub fn run(args: PrecisionArgs) -> CliResult<()> {
+    if let Some(spec) = args.grid {
+        return crate::grid_precision::run(crate::grid_precision::GridRequest {
+            spec,
+            reference: args.reference,
+            cache: args.cache,
+            fast_vs_full: args.fast_vs_full,
+            threads: args.threads,
+            out: args.out,
+            json: args.json,
+        });
+    }
     let (name, q2, p2) = parse_orbit(&args.orbit)?;
     let energy = finite("--energy", args.energy)?;
     if !(args.t_final.is_finite() && args.t_final >= 0.5 && args.t_final <= 1e7) {

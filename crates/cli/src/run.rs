@@ -69,23 +69,38 @@ fn run_dir_name(index: usize, r: &RunSpec) -> String {
     s
 }
 
+/// `--threads`: 1..=1024, every core when absent.
+pub fn thread_count(threads: Option<usize>) -> CliResult<usize> {
+    match threads {
+        Some(0) | Some(1025..) => Err(CliError::Usage(format!(
+            "--threads must be in 1..=1024 (got {})",
+            threads.unwrap_or(0)
+        ))),
+        Some(n) => Ok(n),
+        None => Ok(std::thread::available_parallelism().map_or(1, |n| n.get())),
+    }
+}
+
 pub fn run(args: RunArgs) -> CliResult<()> {
     let job = spec::load(&args.spec, args.max_cells)?;
-    let threads = match args.threads {
-        Some(0) | Some(1025..) => {
-            return Err(CliError::Usage(format!(
-                "--threads must be in 1..=1024 (got {})",
-                args.threads.unwrap_or(0)
-            )))
-        }
-        Some(n) => n,
-        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
-    };
+    let threads = thread_count(args.threads)?;
     let out = args
         .out
         .clone()
         .unwrap_or_else(|| Path::new("out").join(&job.name));
     let staged = Staged::begin(&out, "--out")?;
+    let results = run_sweep(&job, threads, &out, Some(staged.path()))?;
+    write_sweep(&results, Some((&out, staged)), None, args.json)
+}
+
+/// Runs every member of the sweep on `threads` threads, in order, each folder written into
+/// `stage` (the staging folder of `out`) as soon as its run is done, when there is one.
+pub fn run_sweep(
+    job: &JobSpec,
+    threads: usize,
+    out: &Path,
+    stage: Option<&Path>,
+) -> CliResult<Vec<RunResult>> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
@@ -93,7 +108,6 @@ pub fn run(args: RunArgs) -> CliResult<()> {
     for w in &job.warnings {
         tracing::warn!("{w}");
     }
-
     let mut results: Vec<RunResult> = Vec::new();
     for (index, r) in job.runs.iter().enumerate() {
         // The last finished run of the sweep with the same τ and t_final (another method, or
@@ -108,11 +122,13 @@ pub fn run(args: RunArgs) -> CliResult<()> {
             })
             .flatten();
         let forecast = similar.map(|p| (p.ledger.forecast(), p.dir_name()));
-        let result = pool.install(|| run_one(&job, index, r, threads, &out, forecast))?;
-        pool.install(|| write_run(&job, &result, staged.path()))?;
+        let result = pool.install(|| run_one(job, index, r, threads, out, forecast))?;
+        if let Some(stage) = stage {
+            pool.install(|| write_run(job, &result, stage))?;
+        }
         results.push(result);
     }
-    write_sweep(&results, Some((&out, staged)), None, args.json)
+    Ok(results)
 }
 
 /// Where a sweep's files go: the output folder and its staging folder.
@@ -227,9 +243,50 @@ fn run_one(
     Ok(result)
 }
 
+/// The codes of class.npy: what each [`RunResult::class_codes`] value means.
+pub const CLASS_CODE_NAMES: [&str; 6] = [
+    "incompatible",
+    "regular",
+    "sticky",
+    "chaotic",
+    "escaped",
+    "no class",
+];
+
 impl RunResult {
+    /// Per cell (index order), class.npy's code: 0 incompatible, 1 regular, 2 sticky,
+    /// 3 chaotic, 4 escaped, 5 no class for another reason (energy drift, a failed orbit).
+    pub fn class_codes(&self) -> Vec<u8> {
+        let g = &self.grid;
+        let mut codes = vec![0u8; g.cells()];
+        for cell in (0..g.cells() as u32).filter(|&c| g.is_compatible(c)) {
+            let l = self
+                .ledger
+                .label(cell)
+                .expect("every compatible cell is labelled");
+            codes[cell as usize] = match l.class {
+                Some(Class::Regular) => 1,
+                Some(Class::Sticky) => 2,
+                Some(Class::Chaotic) => 3,
+                None if l.status == Status::Escaped => 4,
+                None => 5,
+            };
+        }
+        codes
+    }
+
+    /// The member of the sweep this run is.
+    pub fn spec(&self) -> &RunSpec {
+        &self.spec
+    }
+
+    /// CPU and wall seconds of the run.
+    pub fn cost(&self) -> (f64, f64) {
+        (self.cpu_s, self.wall_s)
+    }
+
     /// The name of the run's folder.
-    fn dir_name(&self) -> String {
+    pub fn dir_name(&self) -> String {
         self.dir
             .file_name()
             .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
@@ -421,23 +478,13 @@ pub fn write_run(job: &JobSpec, r: &RunResult, stage: &Path) -> CliResult<()> {
 /// class.npy, sali.npy, map.png and run.json of one run, in `dir`.
 fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<()> {
     let g = &r.grid;
-    let mut class_codes = vec![0u8; g.cells()];
+    let class_codes = r.class_codes();
     let mut sali = vec![f64::NAN; g.cells()];
-    for cell in 0..g.cells() as u32 {
-        if !g.is_compatible(cell) {
-            continue;
-        }
+    for cell in (0..g.cells() as u32).filter(|&c| g.is_compatible(c)) {
         let l = r
             .ledger
             .label(cell)
             .expect("every compatible cell is labelled");
-        class_codes[cell as usize] = match l.class {
-            Some(Class::Regular) => 1,
-            Some(Class::Sticky) => 2,
-            Some(Class::Chaotic) => 3,
-            None if l.status == Status::Escaped => 4,
-            None => 5,
-        };
         sali[cell as usize] = l.sali;
     }
     let shape = [g.n_q2, g.n_p2];

@@ -24,6 +24,6 @@ mod table;
 pub use error::ReportError;
 pub use greymap::{render_grey_map_png, GREY_MAP_SIZE, NAN_COLOUR};
 pub use loglog::{render_loglog_png, HLine, Line, LogLogPlot};
-pub use npy::{npy_bytes_f64, write_npy_f64, write_npy_u8};
+pub use npy::{npy_bytes_f64, read_npy_u8, write_npy_f64, write_npy_u8};
 pub use table::Table;
 pub use table::NOTHING;

@@ -68,6 +68,42 @@ pub fn write_npy_u8(path: &Path, shape: &[usize], data: &[u8]) -> Result<(), Rep
     std::fs::write(path, out).map_err(ReportError::Io)
 }
 
+/// Reads a u8 array ('|u1', C order) as [`write_npy_u8`] writes it: its shape and data.
+pub fn read_npy_u8(path: &Path) -> Result<(Vec<usize>, Vec<u8>), ReportError> {
+    let bytes = std::fs::read(path).map_err(ReportError::Io)?;
+    let bad = |why: &str| ReportError::Plot(format!("{}: {why}", path.display()));
+    if bytes.len() < 10 || &bytes[..8] != b"\x93NUMPY\x01\x00" {
+        return Err(bad("not a NumPy .npy file of format 1.0"));
+    }
+    let len = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    let dict = bytes
+        .get(10..10 + len)
+        .and_then(|d| std::str::from_utf8(d).ok())
+        .ok_or_else(|| bad("truncated header"))?;
+    if !dict.contains("'descr': '|u1'") || !dict.contains("'fortran_order': False") {
+        return Err(bad("not a C-order array of u8"));
+    }
+    let dims = dict
+        .split_once("'shape': (")
+        .and_then(|(_, rest)| rest.split_once(')'))
+        .map(|(dims, _)| dims)
+        .ok_or_else(|| bad("no shape in the header"))?;
+    let shape = dims
+        .split(',')
+        .map(str::trim)
+        .filter(|d| !d.is_empty())
+        .map(|d| {
+            d.parse::<usize>()
+                .map_err(|_| bad("a dimension is not a number"))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let data = bytes[10 + len..].to_vec();
+    if shape.iter().product::<usize>() != data.len() {
+        return Err(bad("the data does not fill the shape"));
+    }
+    Ok((shape, data))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -122,6 +158,13 @@ mod tests {
         let want = numpy_header("{'descr': '|u1', 'fortran_order': False, 'shape': (2, 2), }");
         assert_eq!(&b[..want.len()], &want[..]);
         assert_eq!(&b[want.len()..], &[1, 2, 3, 4]);
+
+        assert_eq!(
+            read_npy_u8(&dir.path().join("class.npy")).unwrap(),
+            (vec![2, 2], vec![1, 2, 3, 4])
+        );
+        std::fs::write(dir.path().join("bad.npy"), b"not numpy").unwrap();
+        assert!(read_npy_u8(&dir.path().join("bad.npy")).is_err());
 
         let path = dir.path().join("sali.npy");
         write_npy_f64(&path, &[1, 3], &[0.1, 0.2, 0.3]).unwrap();
