@@ -174,6 +174,21 @@ delta = [1e-6]
     let out = client(&["submit", &bad], &url);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("grid.cells"));
+    // An energy sweep: a grid per energy, and the same files as `salient run`.
+    let e = d.join("energy");
+    std::fs::create_dir_all(&e).unwrap();
+    let text = std::fs::read_to_string(&spec).unwrap();
+    let swept = text
+        .replace("energy = 0.125\n", "")
+        .replace("[sweep]", "[sweep]\nenergy = [0.1, 0.15]");
+    let (summary, _) = submit_and_run(&e, &write_spec(&e, "energy.toml", &swept), &url);
+    let energies: Vec<f64> = summary["runs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["energy"].as_f64().unwrap())
+        .collect();
+    assert_eq!(energies, [0.1, 0.1, 0.15, 0.15]);
 }
 
 #[test]

@@ -392,3 +392,40 @@ fn bad_specs_exit_2_naming_the_field_and_write_nothing() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("missing.toml"));
 }
+
+/// `sweep.energy`: one run per energy on the grid of each, each the same files as that energy
+/// run alone, a column H in the table and percent_vs_energy.png.
+#[test]
+fn an_energy_sweep_runs_each_energy_as_it_runs_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let swept = SMALL
+        .replace("energy = 0.125\n", "")
+        .replace("[sweep]", "[sweep]\nenergy = [0.1, 0.125, 0.18]");
+    let spec = write_spec(dir.path(), "swept.toml", &swept);
+    let out = dir.path().join("swept");
+    let v = run_json(&spec, "2", &out);
+    let runs = v["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 3);
+    // Higher energy, fewer regular cells.
+    let regular = |k: usize| runs[k]["percent"]["regular"].as_f64().unwrap();
+    assert!(regular(0) > regular(1) && regular(1) > regular(2), "{v}");
+    assert_eq!(runs[0]["energy"], 0.1);
+    let table = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(table.starts_with("| H "), "{table}");
+    assert!(out.join("percent_vs_energy.png").is_file());
+    let dirs = run_dirs(&out);
+    assert!(
+        dirs[1].ends_with("02-H0.125-tm-sbab2c-tau0.5-t2000"),
+        "{dirs:?}"
+    );
+
+    let alone = dir.path().join("alone");
+    run_json(&write_spec(dir.path(), "alone.toml", SMALL), "1", &alone);
+    for file in ["cells.csv", "class.npy", "sali.npy"] {
+        assert_eq!(
+            std::fs::read(dirs[1].join(file)).unwrap(),
+            std::fs::read(run_dirs(&alone)[0].join(file)).unwrap(),
+            "{file}"
+        );
+    }
+}

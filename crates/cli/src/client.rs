@@ -535,9 +535,10 @@ async fn fetch_and_write(
         .map_err(|e| rpc_error("results", e))?
         .into_inner();
     let bad = |m: String| CliError::Runtime(format!("results of job {job}: {m}"));
-    let mut spec: Option<(JobSpec, salient_grid::Grid)> = None;
-    // Per run: its header, the ledger being rebuilt, and the checkpoint count outcomes carry.
-    let mut runs: Vec<(v1::RunHeader, Ledger, usize)> = Vec::new();
+    let mut spec: Option<JobSpec> = None;
+    // Per run: its header, the ledger being rebuilt, the checkpoint count outcomes carry, and
+    // its grid (the spec's cells at the run's energy).
+    let mut runs: Vec<(v1::RunHeader, Ledger, usize, salient_grid::Grid)> = Vec::new();
     while let Some(chunk) = stream
         .message()
         .await
@@ -547,26 +548,23 @@ async fn fetch_and_write(
             Some(Part::Header(h)) => {
                 let s = spec::parse(&h.spec_json, true)
                     .map_err(|e| bad(format!("the stored spec: {e}")))?;
-                let grid = s.grid();
-                spec = Some((s, grid));
+                spec = Some(s);
             }
             Some(Part::Run(h)) => {
-                let (s, grid) = spec
+                let s = spec
                     .as_ref()
                     .ok_or_else(|| bad("run before header".into()))?;
                 if h.run as usize >= s.runs.len() {
                     return Err(bad(format!("run {} is not in the spec", h.run)));
                 }
                 let checkpoints = s.cell_run(h.run as usize).checkpoint_steps().len();
-                runs.push((h, Ledger::new(grid, s.grid.mode), checkpoints));
+                let grid = s.grid(h.run as usize);
+                runs.push((h, Ledger::new(&grid, s.grid.mode), checkpoints, grid));
             }
             Some(Part::Outcomes(batch)) => {
-                let (_, grid) = spec
-                    .as_ref()
-                    .ok_or_else(|| bad("outcomes before header".into()))?;
-                let (_, ledger, checkpoints) = runs
+                let (_, ledger, checkpoints, grid) = runs
                     .iter_mut()
-                    .find(|(h, _, _)| h.run == batch.run)
+                    .find(|(h, ..)| h.run == batch.run)
                     .ok_or_else(|| bad(format!("outcomes of unknown run {}", batch.run)))?;
                 for o in &batch.outcomes {
                     ledger.offer(outcome_from_wire(o, grid, *checkpoints).map_err(bad)?);
@@ -575,9 +573,9 @@ async fn fetch_and_write(
             None => return Err(bad("an empty message".into())),
         }
     }
-    let (job_spec, grid) = spec.ok_or_else(|| bad("no header".into()))?;
+    let job_spec = spec.ok_or_else(|| bad("no header".into()))?;
     let mut results = Vec::new();
-    for (h, mut ledger, _) in runs {
+    for (h, mut ledger, _, grid) in runs {
         if !ledger.done() {
             return Err(bad(format!("run {} is incomplete", h.run)));
         }
@@ -587,7 +585,7 @@ async fn fetch_and_write(
         let r = RunResult::new(
             &job_spec,
             h.run as usize,
-            grid.clone(),
+            grid,
             ledger,
             h.cpu_s,
             h.wall_s,

@@ -120,12 +120,13 @@ struct Reference {
     wall_s: f64,
 }
 
-/// The default reference of a sweep's runs to `t_final`: the same system, grid and checks in
-/// full mode, f64 Taylor at δ = [`REFERENCE_DELTA`] with the free protocol, sampled every
-/// `tau` (the sweep's smallest τ).
-fn reference_spec(job: &JobSpec, t_final: f64, tau: f64) -> CliResult<JobSpec> {
+/// The default reference of a sweep's runs at `energy` to `t_final`: the same system, grid and
+/// checks in full mode, f64 Taylor at δ = [`REFERENCE_DELTA`] with the free protocol, sampled
+/// every `tau` (the sweep's smallest τ).
+fn reference_spec(job: &JobSpec, energy: f64, t_final: f64, tau: f64) -> CliResult<JobSpec> {
     let mut v = job.source.clone();
     v["name"] = json!(format!("{}-reference", job.name));
+    v["system"]["energy"] = json!(energy);
     v["grid"]["mode"] = json!("full");
     v["sweep"] = json!({
         "method": ["taylor"], "tau": [tau], "t_final": [t_final], "delta": [REFERENCE_DELTA],
@@ -139,6 +140,7 @@ fn full_mode_spec(job: &JobSpec, index: usize) -> CliResult<JobSpec> {
     let r = &job.runs[index];
     let mut v = job.source.clone();
     v["name"] = json!(format!("{}-full", job.name));
+    v["system"]["energy"] = json!(r.energy);
     v["grid"]["mode"] = json!("full");
     v["sweep"] = json!({
         "method": [r.method.name()], "tau": [r.tau], "t_final": [r.t_final],
@@ -321,21 +323,20 @@ fn compare_all(
     let tau = job.runs.iter().map(|r| r.tau).fold(f64::INFINITY, f64::min);
     let one_given = given.is_some();
     let mut references: Vec<Reference> = given.into_iter().collect();
-    let mut by_t_final: BTreeMap<u64, usize> = BTreeMap::new();
+    // Per (energy, t_final): its reference.
+    let mut by_run: BTreeMap<(u64, u64), usize> = BTreeMap::new();
     let mut rows = Vec::new();
     for (index, result) in results.iter().enumerate() {
-        let t_final = result.spec().t_final;
+        let (energy, t_final) = (result.spec().energy, result.spec().t_final);
+        let key = (energy.to_bits(), t_final.to_bits());
         let reference = if one_given {
             0
-        } else if let Some(&k) = by_t_final.get(&t_final.to_bits()) {
+        } else if let Some(&k) = by_run.get(&key) {
             k
         } else {
-            references.push(cached_run(
-                &reference_spec(job, t_final, tau)?,
-                cache,
-                threads,
-            )?);
-            by_t_final.insert(t_final.to_bits(), references.len() - 1);
+            let spec = reference_spec(job, energy, t_final, tau)?;
+            references.push(cached_run(&spec, cache, threads)?);
+            by_run.insert(key, references.len() - 1);
             references.len() - 1
         };
         let codes = result.class_codes();
@@ -371,7 +372,11 @@ fn run_label(r: &RunResult) -> String {
 }
 
 fn comparison_table(results: &[RunResult], references: &[Reference], rows: &[Row]) -> Table {
-    let mut table = Table::new(&[
+    let swept = results
+        .windows(2)
+        .any(|w| w[0].spec().energy != w[1].spec().energy);
+    let mut headers = if swept { vec!["H"] } else { Vec::new() };
+    headers.extend([
         "method",
         "tau",
         "delta",
@@ -387,6 +392,7 @@ fn comparison_table(results: &[RunResult], references: &[Reference], rows: &[Row
         "% fast vs full",
         "reference",
     ]);
+    let mut table = Table::new(&headers);
     for row in rows {
         let r = &results[row.index];
         let s = r.spec();
@@ -399,7 +405,12 @@ fn comparison_table(results: &[RunResult], references: &[Reference], rows: &[Row
             .map(|(a, b, n)| format!("{a}/{b} {n}"))
             .collect();
         let [dr, ds, dc] = c.percent_errors();
-        table.push(vec![
+        let mut cells = if swept {
+            vec![s.energy.to_string()]
+        } else {
+            Vec::new()
+        };
+        cells.extend([
             s.method.name(),
             s.tau.to_string(),
             s.delta.map_or("—".into(), |d| format!("{d:e}")),
@@ -421,6 +432,7 @@ fn comparison_table(results: &[RunResult], references: &[Reference], rows: &[Row
                 .map_or("—".into(), |f| format!("{:.2}", f.differing_percent())),
             references[row.reference].origin.to_string(),
         ]);
+        table.push(cells);
     }
     table
 }
@@ -454,7 +466,8 @@ fn summary_json(
             let s = r.spec();
             let (cpu, wall) = r.cost();
             json!({
-                "method": s.method.name(), "tau": s.tau, "delta": s.delta, "t_final": s.t_final,
+                "energy": s.energy, "method": s.method.name(), "tau": s.tau, "delta": s.delta,
+                "t_final": s.t_final,
                 "cpu_s": cpu, "wall_s": wall, "reference": row.reference,
                 "against_reference": comparison_json(&row.against_reference),
                 "fast_vs_full": row.fast_vs_full.as_ref().map(comparison_json),
@@ -595,7 +608,7 @@ mod tests {
         };
         assert_eq!(cache_key(&spec("a", 100.0)), cache_key(&spec("b", 100.0)));
         assert_ne!(cache_key(&spec("a", 100.0)), cache_key(&spec("a", 200.0)));
-        let reference = reference_spec(&spec("a", 100.0), 100.0, 0.5).unwrap();
+        let reference = reference_spec(&spec("a", 100.0), 0.125, 100.0, 0.5).unwrap();
         assert_eq!(reference.grid.mode, Mode::Full);
         assert_eq!(reference.runs.len(), 1);
         assert_eq!(reference.runs[0].delta, Some(REFERENCE_DELTA));

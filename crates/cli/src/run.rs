@@ -14,7 +14,8 @@ use salient_grid::{
     Ledger, Mode, ScanOrder,
 };
 use salient_report::{
-    render_grey_map_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LogLogPlot, Table,
+    render_grey_map_png, render_lines_png, render_loglog_png, write_npy_f64, write_npy_u8, Line,
+    LinePlot, LogLogPlot, Table,
 };
 use serde_json::{json, Value};
 use std::fmt::Write as _;
@@ -53,11 +54,20 @@ pub struct RunResult {
     checkpoints: Vec<(f64, f64, f64, f64)>,
     /// The folder of the earlier run whose labellers guided this one's scheduling.
     forecast_from: Option<String>,
+    /// Whether the sweep covers several energies (the folder's name then says which).
+    energy_swept: bool,
 }
 
-fn run_dir_name(index: usize, r: &RunSpec) -> String {
+/// `01-tm-sbab2c-tau0.5-t10000`, with `-delta1e-8` for adaptive methods and `H0.125-` after
+/// the number when the sweep covers several energies.
+fn run_dir_name(index: usize, r: &RunSpec, with_energy: bool) -> String {
+    let energy = if with_energy {
+        format!("H{}-", r.energy)
+    } else {
+        String::new()
+    };
     let mut s = format!(
-        "{:02}-{}-tau{}-t{}",
+        "{:02}-{energy}{}-tau{}-t{}",
         index + 1,
         r.method.name(),
         r.tau,
@@ -115,10 +125,9 @@ pub fn run_sweep(
         // labels unchanged.
         let similar = takes_forecast(&job.cell_run(index), job.grid.mode)
             .then(|| {
-                results
-                    .iter()
-                    .rev()
-                    .find(|p| p.spec.tau == r.tau && p.spec.t_final == r.t_final)
+                results.iter().rev().find(|p| {
+                    p.spec.tau == r.tau && p.spec.t_final == r.t_final && p.spec.energy == r.energy
+                })
             })
             .flatten();
         let forecast = similar.map(|p| (p.ledger.forecast(), p.dir_name()));
@@ -158,6 +167,9 @@ pub fn write_sweep(
             if results.iter().any(|r| !r.checkpoints.is_empty()) {
                 plot_percent_vs_t(results, &stage.join("percent_vs_t.png"))?;
             }
+            if results.iter().any(|r| r.energy_swept) {
+                plot_percent_vs_energy(results, &stage.join("percent_vs_energy.png"))?;
+            }
             staged.publish()?;
             Some(out)
         }
@@ -186,7 +198,7 @@ fn run_one(
     out: &Path,
     forecast: Option<(Forecast, String)>,
 ) -> CliResult<RunResult> {
-    let grid = job.grid();
+    let grid = job.grid(index);
     let mode = job.grid.mode;
     let cell_run = job.cell_run(index);
     // Fast PSS speculates at most one batch per thread ahead of the ledger; full mode never
@@ -199,7 +211,7 @@ fn run_one(
         "[{}/{}] {}",
         index + 1,
         job.runs.len(),
-        run_dir_name(index, r)
+        run_dir_name(index, r, job.sweeps_energy())
     );
     let compatible = grid.compatible_count() as u64;
     let bar = std::io::stderr().is_terminal().then(|| {
@@ -307,8 +319,9 @@ impl RunResult {
         RunResult {
             counts: Counts::of(&grid, &ledger),
             checkpoints: checkpoint_percentages(&grid, &ledger, &job.cell_run(index)),
-            dir: out.join(run_dir_name(index, spec)),
+            dir: out.join(run_dir_name(index, spec, job.sweeps_energy())),
             forecast_from: None,
+            energy_swept: job.sweeps_energy(),
             spec: spec.clone(),
             grid,
             ledger,
@@ -505,7 +518,7 @@ fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<(
         .collect();
     let title = format!(
         "log10 SALI — {}",
-        run_dir_name(0, &r.spec)
+        run_dir_name(0, &r.spec, r.energy_swept)
             .split_once('-')
             .map_or("", |(_, b)| b)
     );
@@ -542,12 +555,14 @@ fn run_json(r: &RunResult) -> Value {
     let c = &r.counts;
     let (reg, st, ch) = c.percent();
     json!({
+        "energy": r.spec.energy,
         "method": r.spec.method.name(),
         "tau": r.spec.tau,
         "delta": r.spec.delta,
         "t_final": r.spec.t_final,
         "mode": match r.ledger.mode() { Mode::FastPss => "fast-pss", Mode::Full => "full" },
         "cells": [r.grid.n_q2, r.grid.n_p2],
+        "bounds": { "q2": [r.grid.q2.0, r.grid.q2.1], "p2": [r.grid.p2.0, r.grid.p2.1] },
         "order": r.grid.order.name(),
         "order_seed": match r.grid.order { ScanOrder::Shuffle(seed) => Some(seed), _ => None },
         "compatible": c.compatible,
@@ -577,7 +592,9 @@ fn sweep_table(results: &[RunResult]) -> Table {
         .iter()
         .map(|s| format!("% {}", s.as_str()))
         .collect();
-    let mut headers = vec![
+    let energy_swept = results.iter().any(|r| r.energy_swept);
+    let mut headers = if energy_swept { vec!["H"] } else { Vec::new() };
+    headers.extend([
         "tau",
         "t_final",
         "method",
@@ -586,13 +603,18 @@ fn sweep_table(results: &[RunResult]) -> Table {
         "% sticky",
         "% chaotic",
         "% escaped",
-    ];
+    ]);
     headers.extend(failure_headers.iter().map(|s| s.as_str()));
     headers.extend(["orbits", "dropped", "% steps dropped", "CPU s", "wall s"]);
     let mut t = Table::new(&headers);
     for r in results {
         let (a, b, c) = r.counts.percent();
-        let mut row = vec![
+        let mut row = if energy_swept {
+            vec![format!("{}", r.spec.energy)]
+        } else {
+            Vec::new()
+        };
+        row.extend([
             format!("{}", r.spec.tau),
             format!("{:e}", r.spec.t_final),
             r.spec.method.name(),
@@ -601,7 +623,7 @@ fn sweep_table(results: &[RunResult]) -> Table {
             format!("{b:.2}"),
             format!("{c:.2}"),
             format!("{:.2}", r.counts.percent_escaped()),
-        ];
+        ]);
         for &s in &failures {
             row.push(format!(
                 "{:.2}",
@@ -624,6 +646,63 @@ fn sweep_table(results: &[RunResult]) -> Table {
         t.push(row);
     }
     t
+}
+
+/// Percentages of regular, sticky, chaotic and escaped cells against the energy H, one set of
+/// lines per member of the sweep at the other axes' values (method, τ, δ, t_final).
+fn plot_percent_vs_energy(results: &[RunResult], path: &Path) -> CliResult<()> {
+    let mut families: Vec<(String, Vec<&RunResult>)> = Vec::new();
+    for r in results {
+        let s = &r.spec;
+        let mut key = format!("{} τ={} t={}", s.method.name(), s.tau, s.t_final);
+        if let Some(d) = s.delta {
+            let _ = write!(key, " δ={d:e}");
+        }
+        match families.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, members)) => members.push(r),
+            None => families.push((key, vec![r])),
+        }
+    }
+    let one = families.len() == 1;
+    let mut series: Vec<(String, Vec<f64>, Vec<f64>)> = Vec::new();
+    for (key, members) in &families {
+        let h: Vec<f64> = members.iter().map(|r| r.spec.energy).collect();
+        type Share = fn(&Counts) -> f64;
+        let classes: [(&str, Share); 4] = [
+            ("regular", |c| c.percent().0),
+            ("sticky", |c| c.percent().1),
+            ("chaotic", |c| c.percent().2),
+            ("escaped", |c| c.percent_escaped()),
+        ];
+        for (class, value) in classes {
+            let label = if one {
+                class.to_string()
+            } else {
+                format!("{class}, {key}")
+            };
+            series.push((
+                label,
+                h.clone(),
+                members.iter().map(|r| value(&r.counts)).collect(),
+            ));
+        }
+    }
+    let plot = LinePlot {
+        title: "percent of compatible cells against the energy",
+        x_label: "H",
+        y_label: "% of cells",
+        lines: series
+            .iter()
+            .map(|(l, x, y)| Line {
+                label: l,
+                xs: x,
+                ys: y,
+            })
+            .collect(),
+        y_range: Some((0.0, 100.0)),
+    };
+    render_lines_png(&plot, path, 1200, 800)
+        .map_err(|e| runtime("plotting percent_vs_energy.png", e))
 }
 
 /// Fig. 7: full-mode percentages at checkpoints against t, and fast-PSS runs at their t_final.

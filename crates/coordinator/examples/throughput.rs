@@ -48,7 +48,7 @@ fn main() {
             "sweep": {{"method": ["tm-sbab2c"], "tau": [0.5], "t_final": [1e4]}}}}"#
     );
     let job_spec = spec::parse(&json, true).unwrap();
-    let grid = job_spec.grid();
+    let grid = job_spec.grid(0);
     let checkpoints = job_spec.cell_run(0).checkpoint_steps().len();
     let dir = tempfile::tempdir().unwrap();
     let store = Store::open(&dir.path().join("bench.db")).unwrap();

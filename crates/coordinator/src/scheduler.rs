@@ -37,10 +37,11 @@ pub const FAST_PSS_LEASE_CELLS: usize = 16;
 const WINDOW_CELLS_PER_WORKER: usize = 1_600;
 const WINDOW_CELLS_MIN: usize = 25_600;
 
-/// The grid a run's leases cut: fast PSS in units of [`FAST_PSS_LEASE_CELLS`], full mode in
-/// the spec's tiles (a tile's orbits are independent, and larger units cost fewer round trips).
-pub fn lease_grid(spec: &JobSpec) -> Grid {
-    let grid = spec.grid();
+/// The grid run `index`'s leases cut: fast PSS in units of [`FAST_PSS_LEASE_CELLS`], full mode
+/// in the spec's tiles (a tile's orbits are independent, and larger units cost fewer round
+/// trips).
+pub fn lease_grid(spec: &JobSpec, index: usize) -> Grid {
+    let grid = spec.grid(index);
     match spec.grid.mode {
         salient_grid::Mode::FastPss => grid.retiled(FAST_PSS_LEASE_CELLS),
         salient_grid::Mode::Full => grid,
@@ -258,7 +259,8 @@ struct Replies {
 }
 
 /// Fast PSS: gives the labellers of finished run `from` as a forecast ([`Run::forecast`]) to
-/// the unfinished runs of the job it resembles: the same τ and t_final (another method or δ,
+/// the unfinished runs of the job it resembles, at the same energy (the same grid): the same τ
+/// and t_final (another method or δ,
 /// as `salient run` does in a sweep: integrators that agree on the orbits agree on the
 /// labellers), or the same method and τ to a longer t_final (the same orbits, longer: each
 /// crosses again every cell it crossed). Runs whose threads keep one orbit in flight take none
@@ -267,7 +269,8 @@ struct Replies {
 fn hand_forecast(spec: &JobSpec, runs: &mut [Run], from: usize) {
     let source = &spec.runs[from];
     let resembles = |target: &spec::RunSpec| {
-        source.tau == target.tau
+        source.energy == target.energy
+            && source.tau == target.tau
             && (source.t_final == target.t_final
                 || (source.method == target.method
                     && source.delta == target.delta
@@ -329,7 +332,7 @@ fn counter(run: usize, what: &str) -> String {
 
 impl Run {
     fn new(spec: &JobSpec, index: usize) -> Run {
-        let grid = lease_grid(spec);
+        let grid = lease_grid(spec, index);
         let cell_run = spec.cell_run(index);
         let mut ledger = Ledger::new(&grid, spec.grid.mode);
         if spec.grid.mode == salient_grid::Mode::FastPss {

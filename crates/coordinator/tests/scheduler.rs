@@ -48,20 +48,21 @@ fn labels(s: &Scheduler, job: u64) -> Vec<Vec<Option<Label>>> {
     for c in s.results(job, 7).unwrap() {
         match c.part.unwrap() {
             Part::Header(h) => spec = Some(spec::parse(&h.spec_json, true).unwrap()),
-            Part::Run(_) => {
+            Part::Run(h) => {
                 let sp = spec.as_ref().unwrap();
-                ledgers.push(Ledger::new(&sp.grid(), sp.grid.mode));
+                ledgers.push(Ledger::new(&sp.grid(h.run as usize), sp.grid.mode));
             }
             Part::Outcomes(b) => {
                 let sp = spec.as_ref().unwrap();
                 let k = sp.cell_run(b.run as usize).checkpoint_steps().len();
                 for o in &b.outcomes {
-                    ledgers[b.run as usize].offer(outcome_from_wire(o, &sp.grid(), k).unwrap());
+                    ledgers[b.run as usize]
+                        .offer(outcome_from_wire(o, &sp.grid(b.run as usize), k).unwrap());
                 }
             }
         }
     }
-    let grid = spec.unwrap().grid();
+    let grid = spec.unwrap().grid(0);
     ledgers
         .iter()
         .map(|l| {
@@ -73,7 +74,7 @@ fn labels(s: &Scheduler, job: u64) -> Vec<Vec<Option<Label>>> {
 
 fn embedded(json: &str) -> Vec<Vec<Option<Label>>> {
     let spec = spec::parse(json, true).unwrap();
-    let grid = spec.grid();
+    let grid = spec.grid(0);
     (0..spec.runs.len())
         .map(|i| {
             let l = run_embedded(&grid, &spec.cell_run(i), spec.grid.mode, 8, |_| {});
@@ -93,7 +94,7 @@ fn work(lease: &v1::Lease, skip: &HashSet<u32>) -> v1::TileReport {
         .filter(|c| !skip.contains(c))
         .collect();
     let outcomes = integrate_cells(
-        &spec.grid(),
+        &spec.grid(0),
         &spec.cell_run(tile.run as usize),
         spec.grid.mode,
         &cells,
@@ -185,13 +186,13 @@ fn dropped(s: &Scheduler, job: u64) -> Vec<u64> {
 fn a_forecast_leases_only_the_cells_that_need_their_own_orbit() {
     let json = spec_json("fast-pss", r#""tm-sbab2c""#);
     let spec = spec::parse(&json, true).unwrap();
-    let grid = spec.grid();
+    let grid = spec.grid(0);
     let finished = run_embedded(&grid, &spec.cell_run(0), spec.grid.mode, 8, |_| {});
     let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
     let (job, _) = s.submit(&json).unwrap();
     s.set_forecast(job, 0, finished.forecast()).unwrap();
     let other = spec::parse(&json.replace("[14, 12]", "[10, 10]"), true).unwrap();
-    let small = Ledger::new(&other.grid(), other.grid.mode).forecast();
+    let small = Ledger::new(&other.grid(0), other.grid.mode).forecast();
     assert_eq!(
         s.set_forecast(job, 0, small).unwrap_err().code(),
         Code::InvalidArgument
@@ -329,7 +330,7 @@ fn fast_pss_leases_small_units_of_the_order_and_fill_a_batch_from_several() {
     let (job, _) = s.submit(&json("fast-pss")).unwrap();
     let order = spec::parse(&json("fast-pss"), true)
         .unwrap()
-        .grid()
+        .grid(0)
         .canonical()
         .to_vec();
     assert!(
@@ -436,12 +437,12 @@ fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     // The cells whose outcomes come to count, in the order they do, as a ledger of the run
     // tells them.
     let sp = spec::parse(&json, true).unwrap();
-    let mut mirror = Ledger::new(&sp.grid(), sp.grid.mode);
+    let mut mirror = Ledger::new(&sp.grid(0), sp.grid.mode);
     mirror.watch_outcomes();
     let mut counting = |outcomes: &[v1::Outcome]| -> Vec<u32> {
         let k = sp.cell_run(0).checkpoint_steps().len();
         for o in outcomes {
-            mirror.offer(outcome_from_wire(o, &sp.grid(), k).unwrap());
+            mirror.offer(outcome_from_wire(o, &sp.grid(0), k).unwrap());
         }
         let mut cells: Vec<u32> = Vec::new();
         for news in mirror.take_outcome_news() {
@@ -626,7 +627,7 @@ fn malformed_reports_are_refused_and_change_nothing() {
     let good = work(&lease, &HashSet::new());
     let tile = lease.lease.unwrap();
     let spec = spec::parse(&lease.spec_json, true).unwrap();
-    let grid = salient_coordinator::scheduler::lease_grid(&spec);
+    let grid = salient_coordinator::scheduler::lease_grid(&spec, 0);
     let other_tile_cell = grid
         .canonical()
         .iter()

@@ -43,7 +43,7 @@ pub const SCHEMA: &[(&str, &[&str])] = &[
         "grid",
         &["cells", "tile", "mode", "q2", "p2", "order", "order_seed"],
     ),
-    ("sweep", &["method", "tau", "t_final", "delta"]),
+    ("sweep", &["method", "tau", "t_final", "delta", "energy"]),
     ("integration", &["protocol", "deviation", "seed"]),
     (
         "classify",
@@ -68,8 +68,10 @@ pub struct GridSpec {
     pub tile_q2: usize,
     pub tile_p2: usize,
     pub mode: Mode,
-    pub q2_range: (f64, f64),
-    pub p2_range: (f64, f64),
+    /// The bounds the spec gives, or `None`: the allowed region at each run's energy
+    /// ([`default_bounds`]).
+    pub q2_range: Option<(f64, f64)>,
+    pub p2_range: Option<(f64, f64)>,
     /// The canonical order fast PSS walks the cells in.
     pub order: ScanOrder,
 }
@@ -78,6 +80,8 @@ pub struct GridSpec {
 /// varies for adaptive methods: `tm-*` methods get `None` and appear once per (tau, t_final)).
 #[derive(Clone, Debug, PartialEq)]
 pub struct RunSpec {
+    /// The energy H of the run's section (`system.energy`, or one of `sweep.energy`).
+    pub energy: f64,
     pub method: Method,
     pub tau: f64,
     pub t_final: f64,
@@ -88,7 +92,6 @@ pub struct RunSpec {
 #[derive(Clone, Debug, PartialEq)]
 pub struct JobSpec {
     pub name: String,
-    pub energy: f64,
     pub grid: GridSpec,
     pub runs: Vec<RunSpec>,
     pub protocol: Protocol,
@@ -105,18 +108,26 @@ pub struct JobSpec {
 pub const CHECKPOINTS_PER_DECADE: u32 = 4;
 
 impl JobSpec {
-    /// The section grid every run of the job covers.
-    pub fn grid(&self) -> Grid {
+    /// The section grid run `index` covers: the spec's cells at the run's energy, within the
+    /// spec's bounds or the allowed region at that energy.
+    pub fn grid(&self, index: usize) -> Grid {
         let g = &self.grid;
+        let energy = self.runs[index].energy;
+        let (dq, dp) = default_bounds(energy);
         Grid::with_order(
-            self.energy,
+            energy,
             g.n_q2,
             g.n_p2,
-            g.q2_range,
-            g.p2_range,
+            g.q2_range.unwrap_or(dq),
+            g.p2_range.unwrap_or(dp),
             (g.tile_q2, g.tile_p2),
             g.order,
         )
+    }
+
+    /// Whether the sweep covers several energies (run folders and tables then name the energy).
+    pub fn sweeps_energy(&self) -> bool {
+        self.runs.windows(2).any(|w| w[0].energy != w[1].energy)
     }
 
     /// How every cell's orbit of run `index` is integrated.
@@ -157,7 +168,7 @@ struct RawSpec {
 #[derive(Serialize)]
 struct RawSystem {
     kind: String,
-    energy: f64,
+    energy: Option<f64>,
 }
 
 #[derive(Serialize)]
@@ -177,6 +188,7 @@ struct RawSweep {
     tau: Vec<f64>,
     t_final: Vec<f64>,
     delta: Option<Vec<f64>>,
+    energy: Option<Vec<f64>>,
 }
 
 #[derive(Serialize)]
@@ -479,7 +491,7 @@ fn read_raw(v: &Value) -> SpecResult<RawSpec> {
         name: top.opt("name", string)?,
         system: RawSystem {
             kind: system.req("kind", string)?,
-            energy: system.req("energy", number)?,
+            energy: system.opt("energy", number)?,
         },
         grid: RawGrid {
             cells: grid.req_list("cells", integer)?,
@@ -495,6 +507,7 @@ fn read_raw(v: &Value) -> SpecResult<RawSpec> {
             tau: sweep.req_list("tau", number)?,
             t_final: sweep.req_list("t_final", number)?,
             delta: sweep.opt_list("delta", number)?,
+            energy: sweep.opt_list("energy", number)?,
         },
         integration: match integration {
             Some(t) => Some(RawIntegration {
@@ -631,11 +644,41 @@ fn check_name(name: &str) -> SpecResult<()> {
     )))
 }
 
+/// The energies of the sweep: `system.energy`, or the list `sweep.energy` (one or the other).
+fn energies(raw: &RawSpec) -> SpecResult<Vec<f64>> {
+    let check = |field: String, energy: f64| {
+        if energy.is_finite() && energy > 0.0 && energy <= MAX_ENERGY {
+            Ok(energy)
+        } else {
+            Err(usage(format!(
+                "{field} must be in (0, {MAX_ENERGY}] (got {energy}; above the escape energy 1/6 orbits may escape)"
+            )))
+        }
+    };
+    match (raw.system.energy, &raw.sweep.energy) {
+        (Some(e), None) => Ok(vec![check("system.energy".into(), e)?]),
+        (None, Some(list)) if list.is_empty() => {
+            Err(usage("sweep.energy must list at least one value"))
+        }
+        (None, Some(list)) => list
+            .iter()
+            .enumerate()
+            .map(|(k, &e)| check(format!("sweep.energy[{k}]"), e))
+            .collect(),
+        (Some(_), Some(_)) => Err(usage(
+            "system.energy and sweep.energy both give the energy: keep one (sweep.energy to sweep it)",
+        )),
+        (None, None) => Err(usage(
+            "system.energy is required (or sweep.energy, a list of energies to sweep)",
+        )),
+    }
+}
+
 fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
     let source = serde_json::to_value(&raw).expect("a read spec holds only finite numbers");
     let mut warnings = Vec::new();
 
-    let name = raw.name.unwrap_or_else(|| "salient".into());
+    let name = raw.name.clone().unwrap_or_else(|| "salient".into());
     check_name(&name)?;
     if raw.system.kind != "henon-heiles" {
         return Err(usage(format!(
@@ -643,12 +686,7 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
             raw.system.kind
         )));
     }
-    let energy = raw.system.energy;
-    if !(energy.is_finite() && energy > 0.0 && energy <= MAX_ENERGY) {
-        return Err(usage(format!(
-            "system.energy must be in (0, {MAX_ENERGY}] (got {energy}; above the escape energy 1/6 orbits may escape)"
-        )));
-    }
+    let energies = energies(&raw)?;
 
     let g = &raw.grid;
     let [n_q2, n_p2] = pair_usize("grid.cells", &g.cells, [MAX_AXIS, MAX_AXIS])?;
@@ -688,9 +726,17 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
             order.name()
         ));
     }
-    let (dq, dp) = default_bounds(energy);
-    let q2_range = range("grid.q2", &g.q2, dq, energy)?;
-    let p2_range = range("grid.p2", &g.p2, dp, energy)?;
+    // Bounds the spec gives must lie in the allowed region at every energy of the sweep.
+    let (mut q2_range, mut p2_range) = (None, None);
+    for &energy in &energies {
+        let (dq, dp) = default_bounds(energy);
+        if g.q2.is_some() {
+            q2_range = Some(range("grid.q2", &g.q2, dq, energy)?);
+        }
+        if g.p2.is_some() {
+            p2_range = Some(range("grid.p2", &g.p2, dp, energy)?);
+        }
+    }
 
     let s = &raw.sweep;
     for (field, len) in [
@@ -833,45 +879,49 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
         .tau
         .len()
         .saturating_mul(s.t_final.len())
-        .saturating_mul(per_pair);
+        .saturating_mul(per_pair)
+        .saturating_mul(energies.len());
     if n_runs > MAX_RUNS {
         return Err(usage(format!(
-            "sweep must make at most {MAX_RUNS} runs (method × tau × t_final × delta; got {n_runs})"
+            "sweep must make at most {MAX_RUNS} runs (energy × method × tau × t_final × delta; got {n_runs})"
         )));
     }
     let mut runs = Vec::new();
-    for &tau in &s.tau {
-        for &t_final in &s.t_final {
-            for m in &methods {
-                if !m.is_adaptive() {
-                    runs.push(RunSpec {
-                        method: m.clone(),
-                        tau,
-                        t_final,
-                        delta: None,
-                    });
-                    continue;
-                }
-                for &d in &deltas {
-                    let (delta, warning) = m.honoured_delta(d);
-                    if let Some(w) = warning {
-                        if !warnings.contains(&w) {
-                            warnings.push(w);
-                        }
+    for &energy in &energies {
+        for &tau in &s.tau {
+            for &t_final in &s.t_final {
+                for m in &methods {
+                    if !m.is_adaptive() {
+                        runs.push(RunSpec {
+                            energy,
+                            method: m.clone(),
+                            tau,
+                            t_final,
+                            delta: None,
+                        });
+                        continue;
                     }
-                    runs.push(RunSpec {
-                        method: m.clone(),
-                        tau,
-                        t_final,
-                        delta: Some(delta),
-                    });
+                    for &d in &deltas {
+                        let (delta, warning) = m.honoured_delta(d);
+                        if let Some(w) = warning {
+                            if !warnings.contains(&w) {
+                                warnings.push(w);
+                            }
+                        }
+                        runs.push(RunSpec {
+                            energy,
+                            method: m.clone(),
+                            tau,
+                            t_final,
+                            delta: Some(delta),
+                        });
+                    }
                 }
             }
         }
     }
     Ok(JobSpec {
         name,
-        energy,
         grid: GridSpec {
             n_q2,
             n_p2,
@@ -942,6 +992,67 @@ tau = [0.05]
 t_final = [1e3]
 "#;
 
+    /// `sweep.energy` makes one run per energy (the outermost axis) on the grid of each.
+    #[test]
+    fn energy_as_a_sweep_axis() {
+        let swept = MINIMAL
+            .replace("energy = 0.125\n", "")
+            .replace("[sweep]", "[sweep]\nenergy = [0.1, 0.125]")
+            .replace("tau = [0.05]", "tau = [0.05, 0.1]");
+        let j = parse(&swept, false).unwrap();
+        let energies: Vec<f64> = j.runs.iter().map(|r| r.energy).collect();
+        assert_eq!(energies, [0.1, 0.1, 0.125, 0.125]);
+        assert!(j.sweeps_energy());
+        assert_eq!(j.grid(0).q2, default_bounds(0.1).0);
+        assert_eq!(j.grid(3).p2, default_bounds(0.125).1);
+        for (text, says) in [
+            (
+                MINIMAL.replace("[sweep]", "[sweep]\nenergy = [0.1]"),
+                "both give the energy",
+            ),
+            (
+                swept.replace("[0.1, 0.125]", "[]"),
+                "sweep.energy must list at least one value",
+            ),
+            (
+                swept.replace("[0.1, 0.125]", "[0.1, 2.0]"),
+                "sweep.energy[1] must be in (0, 1]",
+            ),
+            (
+                MINIMAL.replace("energy = 0.125\n", ""),
+                "system.energy is required",
+            ),
+            // Bounds given must fit the allowed region at every energy: p2 ≤ √(2 · 0.1).
+            (
+                swept.replace("[grid]", "[grid]\np2 = [-0.5, 0.5]"),
+                "grid.p2 must lie within",
+            ),
+        ] {
+            let msg = usage_message(parse(&text, false));
+            assert!(msg.contains(says), "{msg}");
+        }
+        let bounded = parse(&swept.replace("[grid]", "[grid]\np2 = [-0.4, 0.4]"), false).unwrap();
+        assert_eq!(bounded.grid(0).p2, (-0.4, 0.4));
+        assert_eq!(bounded.grid(3).p2, (-0.4, 0.4));
+    }
+
+    /// The compatible cells of a 4 × 4 grid over the allowed region, by hand: a cell is
+    /// compatible when p2² + q2² − (2/3) q2³ < 2H at its centre. The centres lie at ±1/4 and
+    /// ±3/4 of each half-axis; at H = 1/24 the potential is nearly harmonic and the four corner
+    /// cells lie outside ((3/4)² + (3/4)² > 1): 12. At H = 1/8 the two corners at negative q2
+    /// (q2 = −0.3005, p2 = ±0.375: 0.2490 < 0.25) come in and the two at q2 = 0.5345 do not
+    /// (0.325): 14.
+    #[test]
+    fn each_energy_has_its_own_compatible_cells() {
+        let text = MINIMAL
+            .replace("energy = 0.125\n", "")
+            .replace("cells = [10, 300]", "cells = [4, 4]")
+            .replace("[sweep]", "[sweep]\nenergy = [0.041666666666666664, 0.125]");
+        let j = parse(&text, false).unwrap();
+        assert_eq!(j.grid(0).compatible_count(), 12);
+        assert_eq!(j.grid(1).compatible_count(), 14);
+    }
+
     fn usage_message<T: std::fmt::Debug>(r: SpecResult<T>) -> String {
         match r {
             Err(SpecError(msg)) => msg,
@@ -968,14 +1079,16 @@ t_final = [1e3]
         assert_eq!(dop, [(0.5, 1e-5), (0.5, 1e-8), (0.05, 1e-5), (0.05, 1e-8)]);
         assert!(j.runs.iter().all(|r| r.t_final == 1e3));
         assert_eq!(j.name, "t");
-        assert_eq!(j.energy, 0.125);
+        assert!(j.runs.iter().all(|r| r.energy == 0.125));
+        assert!(!j.sweeps_energy());
         assert_eq!(j.grid.mode, Mode::Full);
         assert_eq!(
             (j.grid.n_q2, j.grid.n_p2, j.grid.tile_q2, j.grid.tile_p2),
             (40, 30, 10, 10)
         );
         let (q2, p2) = default_bounds(0.125);
-        assert_eq!((j.grid.q2_range, j.grid.p2_range), (q2, p2));
+        assert_eq!((j.grid.q2_range, j.grid.p2_range), (None, None));
+        assert_eq!((j.grid(0).q2, j.grid(0).p2), (q2, p2));
         assert_eq!(j.protocol, Protocol::Free);
         assert_eq!(j.deviation, Deviation::Random { seed: 7 });
         assert_eq!(
@@ -1042,6 +1155,7 @@ t_final = [1e3]
         assert_eq!(
             j.runs,
             [RunSpec {
+                energy: 0.125,
                 method: Method::parse("tm-sbab2c").unwrap(),
                 tau: 0.05,
                 t_final: 1e3,
@@ -1067,7 +1181,7 @@ t_final = [1e3]
         )
         .unwrap();
         assert_eq!(j.grid.order, ScanOrder::Shuffle(1));
-        assert_eq!(j.grid().order, ScanOrder::Shuffle(1));
+        assert_eq!(j.grid(0).order, ScanOrder::Shuffle(1));
         let text = MINIMAL.replace("[grid]", "[grid]\norder = \"p2-outer\"\norder_seed = 4");
         let j = parse(&text, false).unwrap();
         assert_eq!(j.grid.order, ScanOrder::P2Outer);

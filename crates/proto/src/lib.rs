@@ -223,7 +223,7 @@ mod tests {
             false,
         )
         .unwrap();
-        spec.grid()
+        spec.grid(0)
     }
 
     #[test]

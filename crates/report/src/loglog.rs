@@ -257,7 +257,7 @@ pub(crate) fn decade_label(v: f64) -> String {
 }
 
 /// A legend row.
-enum Swatch {
+pub(crate) enum Swatch {
     Line(RGBColor),
     Dashed(RGBColor, (f64, f64)),
 }
@@ -444,7 +444,7 @@ fn paint(
 
 /// Draws the legend rows in the strip to the right of the chart, starting level with the top of
 /// the plotting area (`top`, in image pixels).
-fn draw_legend(
+pub(crate) fn draw_legend(
     area: &DrawingArea<BitMapBackend, Shift>,
     rows: &[(&str, Swatch)],
     top: i32,

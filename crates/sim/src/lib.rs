@@ -292,10 +292,17 @@ impl Simulation {
     /// it is given.
     pub fn new(spec_json: &str, params: Params) -> Result<Self, String> {
         let spec = spec::parse(spec_json, true).map_err(|e| e.0)?;
+        // The simulated world holds one grid: every run of the job shares it.
+        if spec.sweeps_energy() {
+            return Err(
+                "sweep.energy: the simulator takes one energy at a time (give system.energy, or one value)"
+                    .into(),
+            );
+        }
         if params.threads == 0 {
             return Err("threads must be at least 1".into());
         }
-        let grid = spec.grid();
+        let grid = spec.grid(0);
         let mode = spec.grid.mode;
         let first = spec.cell_run(0);
         let lanes = params.lanes.unwrap_or_else(|| match &first.run.method {
@@ -310,7 +317,7 @@ impl Simulation {
             return Err("lanes must be at least 1".into());
         }
         let traces = (0..spec.runs.len())
-            .map(|i| Traces::new(&grid, spec.cell_run(i), mode))
+            .map(|i| Traces::new(&spec.grid(i), spec.cell_run(i), mode))
             .collect();
         let step_ns = match params.step_ns {
             Some(ns) if ns > 0.0 && ns.is_finite() => ns,

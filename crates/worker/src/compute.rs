@@ -77,7 +77,7 @@ pub(crate) fn compute_thread(
                 .retain(|k, _| *k == keep);
         }
         let (spec, grid, cell_run, local) = runs.entry((key.0, key.1)).or_insert_with(|| {
-            let grid = w.spec.grid();
+            let grid = w.spec.grid(key.1 as usize);
             let local = signals
                 .lock()
                 .expect("signals")

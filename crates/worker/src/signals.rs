@@ -67,7 +67,7 @@ impl Signals {
             RunLedger {
                 local: Arc::new(match grid {
                     Some(g) => LocalLedger::new(g, spec.grid.mode),
-                    None => LocalLedger::new(&spec.grid(), spec.grid.mode),
+                    None => LocalLedger::new(&spec.grid(key.1 as usize), spec.grid.mode),
                 }),
                 relayed: 0,
                 own: again,

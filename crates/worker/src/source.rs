@@ -376,7 +376,7 @@ mod tests {
             "grid": {"cells": [14, 12], "tile": [14, 12], "mode": "fast-pss"},
             "sweep": {"method": ["tm-sbab2c"], "tau": [0.5], "t_final": [10.0]}}"#;
         let spec = Arc::new(spec::parse(json, true).unwrap());
-        let grid = spec.grid();
+        let grid = spec.grid(0);
         let cells: Vec<u32> = grid.canonical()[..3].to_vec();
         let (tx, mut rx) = mpsc::unbounded_channel();
         let local = Arc::new(LocalLedger::new(&grid, spec.grid.mode));
