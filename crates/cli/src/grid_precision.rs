@@ -504,20 +504,29 @@ fn plot_misclassified(
         .map_or(1, |r| r.against_reference.compatible.max(1));
     // Half a cell: below every nonzero count, so the floor reads as "none".
     let floor = 50.0 / compatible as f64;
-    let several_t = results
-        .windows(2)
-        .any(|w| w[0].spec().t_final != w[1].spec().t_final);
+    let varies = |f: fn(&RunResult) -> f64| results.windows(2).any(|w| f(&w[0]) != f(&w[1]));
+    let several_t = varies(|r| r.spec().t_final);
+    let several_tau = varies(|r| r.spec().tau);
+    let several_h = varies(|r| r.spec().energy);
     let mut groups: BTreeMap<String, (Vec<f64>, Vec<f64>)> = BTreeMap::new();
     let mut labels = Vec::new();
     for row in rows {
         let r = &results[row.index];
         let s = r.spec();
+        // A curve runs over τ for a tangent-map method and over δ for an adaptive one, so an
+        // adaptive method's curves are per τ too.
         let mut key = s.method.name();
         if s.method.is_adaptive() {
             key = format!("{key} ({})", job.protocol.as_str());
+            if several_tau {
+                key = format!("{key} τ={}", s.tau);
+            }
         }
         if several_t {
-            key = format!("{key}, t = {}", s.t_final);
+            key = format!("{key}, t={}", s.t_final);
+        }
+        if several_h {
+            key = format!("{key}, H={}", s.energy);
         }
         let y = row.against_reference.differing_percent().max(floor);
         let x = r.cost().0.max(1e-3);
@@ -532,7 +541,7 @@ fn plot_misclassified(
         .collect();
     let floor_label = "no cell differs (drawn at half a cell)";
     let title = format!(
-        "cells misclassified against CPU time, {} ({})",
+        "cells misclassified, {} ({})",
         job.name,
         mode_name(job.grid.mode)
     );
