@@ -648,6 +648,14 @@ fn sweep_table(results: &[RunResult]) -> Table {
     t
 }
 
+/// Named series (label, xs, ys) as plot lines.
+fn lines_of(series: &[(String, Vec<f64>, Vec<f64>)]) -> Vec<Line<'_>> {
+    series
+        .iter()
+        .map(|(label, xs, ys)| Line { label, xs, ys })
+        .collect()
+}
+
 /// Percentages of regular, sticky, chaotic and escaped cells against the energy H, one set of
 /// lines per member of the sweep at the other axes' values (method, τ, δ, t_final).
 fn plot_percent_vs_energy(results: &[RunResult], path: &Path) -> CliResult<()> {
@@ -691,14 +699,7 @@ fn plot_percent_vs_energy(results: &[RunResult], path: &Path) -> CliResult<()> {
         title: "percent of compatible cells against the energy",
         x_label: "H",
         y_label: "% of cells",
-        lines: series
-            .iter()
-            .map(|(l, x, y)| Line {
-                label: l,
-                xs: x,
-                ys: y,
-            })
-            .collect(),
+        lines: lines_of(&series),
         y_range: Some((0.0, 100.0)),
     };
     render_lines_png(&plot, path, 1200, 800)
@@ -753,14 +754,7 @@ fn plot_percent_vs_t(results: &[RunResult], path: &Path) -> CliResult<()> {
         title: "percent of compatible cells against t_final",
         x_label: "t",
         y_label: "% of cells",
-        lines: series
-            .iter()
-            .map(|(l, x, y)| Line {
-                label: l,
-                xs: x,
-                ys: y,
-            })
-            .collect(),
+        lines: lines_of(&series),
         hlines: Vec::new(),
         point_labels: Vec::new(),
         markers: true,

@@ -8,7 +8,7 @@ use plotters::prelude::*;
 
 use crate::canvas::{ensure_font, white_buffer, Canvas, PixelRect, FONT_FAMILY};
 use crate::error::{plot_err, ReportError};
-use crate::loglog::{draw_legend, Line, Swatch, PALETTE};
+use crate::loglog::{check_lengths, draw_legend, Line, Swatch, PALETTE};
 
 /// A plot with linear x and y axes.
 #[derive(Clone, Debug)]
@@ -59,16 +59,7 @@ fn padded(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
 
 pub(crate) fn draw_lines(plot: &LinePlot, width: u32, height: u32) -> Result<Canvas, ReportError> {
     ensure_font()?;
-    for line in &plot.lines {
-        if line.xs.len() != line.ys.len() {
-            return Err(ReportError::Plot(format!(
-                "line {:?} has {} x values but {} y values",
-                line.label,
-                line.xs.len(),
-                line.ys.len()
-            )));
-        }
-    }
+    check_lengths(&plot.lines)?;
     let points: Vec<Vec<(f64, f64)>> = plot.lines.iter().map(finite_points).collect();
     let all = || points.iter().flatten();
     let x_range = padded(all().map(|p| p.0)).ok_or(ReportError::EmptyData("no finite point"))?;

@@ -87,6 +87,19 @@ pub fn render_loglog_png(
     draw_loglog(plot, width, height)?.write_png(path)
 }
 
+/// Every line has as many y values as x values.
+pub(crate) fn check_lengths(lines: &[Line]) -> Result<(), ReportError> {
+    match lines.iter().find(|l| l.xs.len() != l.ys.len()) {
+        Some(line) => Err(ReportError::Plot(format!(
+            "line {:?} has {} x values but {} y values",
+            line.label,
+            line.xs.len(),
+            line.ys.len()
+        ))),
+        None => Ok(()),
+    }
+}
+
 /// Whether a coordinate can be placed on a log axis.
 fn drawable(v: f64) -> bool {
     v.is_finite() && (MIN_DRAWABLE..=MAX_DRAWABLE).contains(&v)
@@ -269,16 +282,7 @@ pub(crate) fn draw_loglog(
     height: u32,
 ) -> Result<Canvas, ReportError> {
     ensure_font()?;
-    for line in &plot.lines {
-        if line.xs.len() != line.ys.len() {
-            return Err(ReportError::Plot(format!(
-                "line {:?} has {} x values but {} y values",
-                line.label,
-                line.xs.len(),
-                line.ys.len()
-            )));
-        }
-    }
+    check_lengths(&plot.lines)?;
     let decades = axis_decades(plot)?;
     let mut rgb = white_buffer(width, height)?;
     let plot_area = paint(plot, decades, &mut rgb, width, height)?;
