@@ -289,7 +289,7 @@ pub fn run(req: GridRequest) -> CliResult<()> {
     let out = req.out.clone().unwrap_or_default();
     let results = run_sweep(&job, threads, &out, staged.as_ref().map(|s| s.path()))?;
     let (references, rows) = compare_all(&job, &results, given, &cache, threads, req.fast_vs_full)?;
-    let table = comparison_table(&results, &references, &rows);
+    let table = comparison_table(&job, &results, &references, &rows);
     let summary = summary_json(&job, &results, &references, &rows);
     if let Some(staged) = staged {
         write_tables(staged.path(), "grid_precision", &table, &summary)?;
@@ -371,10 +371,13 @@ fn run_label(r: &RunResult) -> String {
     }
 }
 
-fn comparison_table(results: &[RunResult], references: &[Reference], rows: &[Row]) -> Table {
-    let swept = results
-        .windows(2)
-        .any(|w| w[0].spec().energy != w[1].spec().energy);
+fn comparison_table(
+    job: &JobSpec,
+    results: &[RunResult],
+    references: &[Reference],
+    rows: &[Row],
+) -> Table {
+    let swept = job.sweeps_energy();
     let mut headers = if swept { vec!["H"] } else { Vec::new() };
     headers.extend([
         "method",
@@ -507,7 +510,7 @@ fn plot_misclassified(
     let varies = |f: fn(&RunResult) -> f64| results.windows(2).any(|w| f(&w[0]) != f(&w[1]));
     let several_t = varies(|r| r.spec().t_final);
     let several_tau = varies(|r| r.spec().tau);
-    let several_h = varies(|r| r.spec().energy);
+    let several_h = job.sweeps_energy();
     let mut groups: BTreeMap<String, (Vec<f64>, Vec<f64>)> = BTreeMap::new();
     let mut labels = Vec::new();
     for row in rows {
