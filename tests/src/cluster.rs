@@ -100,7 +100,13 @@ pub fn assert_same_outputs(a: &Path, b: &Path) {
     assert!(!da.is_empty());
     for (x, y) in da.iter().zip(&db) {
         assert_eq!(x.file_name(), y.file_name());
-        for f in ["cells.csv", "class.npy", "sali.npy"] {
+        for f in [
+            "cells.csv",
+            "class.npy",
+            "sali.npy",
+            "class_map.svg",
+            "map.svg",
+        ] {
             let (bx, by) = (
                 std::fs::read(x.join(f)).unwrap(),
                 std::fs::read(y.join(f)).unwrap(),

@@ -158,13 +158,21 @@ delta = [1e-8]
         run(&spec, &out, &["--threads", threads]);
         let mut files = Vec::new();
         for d in run_dirs(&out) {
-            for f in ["cells.csv", "class.npy", "sali.npy", "map.png"] {
+            for f in [
+                "cells.csv",
+                "class.npy",
+                "sali.npy",
+                "map.png",
+                "map.svg",
+                "class_map.png",
+                "class_map.svg",
+            ] {
                 files.push(std::fs::read(d.join(f)).unwrap());
             }
         }
         outputs.push(files);
     }
-    assert_eq!(outputs[0].len(), 8);
+    assert_eq!(outputs[0].len(), 14);
     for (k, o) in outputs.iter().enumerate().skip(1) {
         for (f, (a, b)) in outputs[0].iter().zip(o).enumerate() {
             assert!(a == b, "output {f} of run {k} differs");

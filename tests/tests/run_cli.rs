@@ -163,7 +163,14 @@ fn run_writes_the_contract_and_never_lists_incompatible_cells() {
         + p["chaotic"].as_f64().unwrap();
     assert!((total - 100.0).abs() < 1e-9);
     let run = run_dirs(&out).remove(0);
-    for f in ["cells.csv", "class.npy", "sali.npy", "map.png", "run.json"] {
+    for f in [
+        "cells.csv",
+        "class.npy",
+        "sali.npy",
+        "map.png",
+        "class_map.png",
+        "run.json",
+    ] {
         assert!(run.join(f).exists(), "{f}");
     }
     for f in ["table.md", "table.csv", "table.json"] {

@@ -9,6 +9,7 @@ mod client;
 mod cluster;
 mod grid_precision;
 mod human;
+mod maps;
 mod orbit;
 mod output;
 mod precision;

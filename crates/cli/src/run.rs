@@ -14,8 +14,8 @@ use salient_grid::{
     Ledger, Mode, ScanOrder,
 };
 use salient_report::{
-    render_grey_map_png, render_lines_png, render_loglog_png, write_npy_f64, write_npy_u8, Line,
-    LinePlot, LogLogPlot, Table,
+    render_lines_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LinePlot, LogLogPlot,
+    Table,
 };
 use serde_json::{json, Value};
 use std::fmt::Write as _;
@@ -287,6 +287,16 @@ impl RunResult {
         codes
     }
 
+    /// The grid the run covered.
+    pub fn grid(&self) -> &Grid {
+        &self.grid
+    }
+
+    /// Every compatible cell's label.
+    pub fn ledger(&self) -> &Ledger {
+        &self.ledger
+    }
+
     /// The member of the sweep this run is.
     pub fn spec(&self) -> &RunSpec {
         &self.spec
@@ -475,7 +485,7 @@ fn write_cells_csv(r: &RunResult, path: &Path) -> CliResult<()> {
     write_file(path, &csv)
 }
 
-/// cells.csv, class.npy, sali.npy, map.png and run.json of one run, in its folder under
+/// cells.csv, class.npy, sali.npy, the maps and run.json of one run, in its folder under
 /// `stage` (the staging folder of the output folder); cells.csv is written beside the rest on
 /// the current rayon pool.
 pub fn write_run(job: &JobSpec, r: &RunResult, stage: &Path) -> CliResult<()> {
@@ -488,7 +498,7 @@ pub fn write_run(job: &JobSpec, r: &RunResult, stage: &Path) -> CliResult<()> {
     csv.and(rest)
 }
 
-/// class.npy, sali.npy, map.png and run.json of one run, in `dir`.
+/// class.npy, sali.npy, the maps ([`crate::maps::write_maps`]) and run.json of one run, in `dir`.
 fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<()> {
     let g = &r.grid;
     let class_codes = r.class_codes();
@@ -505,37 +515,7 @@ fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<(
         .map_err(|e| runtime("writing class.npy", e))?;
     write_npy_f64(&dir.join("sali.npy"), &shape, &sali)
         .map_err(|e| runtime("writing sali.npy", e))?;
-    // log10 SALI in grey like the paper's Fig. 1: black at 1e-16 (chaotic), white at 1.
-    let log_sali: Vec<f64> = sali
-        .iter()
-        .map(|s| {
-            if s.is_nan() {
-                f64::NAN
-            } else {
-                s.max(1e-16).log10()
-            }
-        })
-        .collect();
-    let title = format!(
-        "log10 SALI — {}",
-        run_dir_name(0, &r.spec, r.energy_swept)
-            .split_once('-')
-            .map_or("", |(_, b)| b)
-    );
-    render_grey_map_png(
-        &log_sali,
-        g.n_q2,
-        g.n_p2,
-        g.q2,
-        g.p2,
-        -16.0,
-        0.0,
-        &title,
-        "q2",
-        "p2",
-        &dir.join("map.png"),
-    )
-    .map_err(|e| runtime("plotting map.png", e))?;
+    crate::maps::write_maps(job, r, &sali, dir)?;
     let mut run = run_json(r);
     run["spec"] = job.source.clone();
     run["versions"] = json!({ "salient": env!("CARGO_PKG_VERSION") });

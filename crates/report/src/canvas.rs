@@ -67,8 +67,8 @@ impl PixelRect {
     }
 }
 
-/// A finished plot: RGB pixels plus where the data area ended up (used by tests and by the
-/// grey map to place its cells).
+/// A finished plot: RGB pixels plus where the data area ended up (used by tests and to find a
+/// cell map's cells).
 pub(crate) struct Canvas {
     pub rgb: Vec<u8>,
     pub width: u32,
@@ -76,9 +76,6 @@ pub(crate) struct Canvas {
     /// The plotting (data) area of the main chart.
     #[cfg_attr(not(test), allow(dead_code))]
     pub plot_area: PixelRect,
-    /// The gradient strip of a colour bar, when the plot has one.
-    #[cfg_attr(not(test), allow(dead_code))]
-    pub colour_bar: Option<PixelRect>,
 }
 
 /// Checks the requested size and returns a white RGB buffer for it.

@@ -8,23 +8,26 @@
 //! * [`render_loglog_png`] draws lines on log-log axes (SALI/GALI against time, work-precision
 //!   diagrams), with dashed reference lines and a legend;
 //! * [`render_lines_png`] draws lines on linear axes (percentages against energy);
-//! * [`render_grey_map_png`] draws a scalar field over a 2-D grid in grey levels, with a colour
-//!   bar.
+//! * [`render_cell_map`] draws a field of categories over a 2-D grid (the class of each cell
+//!   with a legend, or a quantity in bands with a stepped colour bar), as PNG or SVG from the
+//!   same drawing.
 //!
 //! Text is set in DejaVu Sans, embedded in the library (`assets/DejaVuSans.ttf`, licence in
 //! `assets/DejaVuSans-LICENSE.txt`), so plots render the same on headless machines without any
 //! system fonts.
 
 mod canvas;
+mod cellmap;
 mod error;
-mod greymap;
+mod figure;
 mod lines;
 mod loglog;
 mod npy;
 mod table;
 
+pub use cellmap::{render_cell_map, Category, CellMap, Scale, CELL_MAP_SIZE};
 pub use error::ReportError;
-pub use greymap::{render_grey_map_png, GREY_MAP_SIZE, NAN_COLOUR};
+pub use figure::ImageFormat;
 pub use lines::{render_lines_png, LinePlot};
 pub use loglog::{render_loglog_png, HLine, Line, LogLogPlot};
 pub use npy::{npy_bytes_f64, read_npy_u8, write_npy_f64, write_npy_u8};

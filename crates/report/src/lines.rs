@@ -75,7 +75,6 @@ pub(crate) fn draw_lines(plot: &LinePlot, width: u32, height: u32) -> Result<Can
         width,
         height,
         plot_area,
-        colour_bar: None,
     })
 }
 

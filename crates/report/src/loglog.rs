@@ -291,7 +291,6 @@ pub(crate) fn draw_loglog(
         width,
         height,
         plot_area,
-        colour_bar: None,
     })
 }
 
