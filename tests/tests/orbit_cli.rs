@@ -109,7 +109,7 @@ fn out_dir_gets_series_crossings_plots_and_summary() {
     assert!(rows.windows(2).all(|w| w[1][0] > w[0][0]), "times increase");
     let crossings = std::fs::read_to_string(out_dir.join("crossings.csv")).unwrap();
     assert!(crossings.starts_with("t,q2,p2,p1\n") && crossings.lines().count() > 10);
-    for png in ["indicators.png", "energy.png"] {
+    for png in ["indicators.png", "energy.png", "section.png"] {
         let bytes = std::fs::read(out_dir.join(png)).unwrap();
         assert!(
             bytes.starts_with(b"\x89PNG\r\n\x1a\n") && bytes.len() > 5000,

@@ -7,7 +7,7 @@ use crate::output::{print_result, write_tables, Staged};
 use crate::run::{run_sweep, thread_count, RunResult, CLASS_CODE_NAMES};
 use crate::spec::{self, JobSpec, Mode};
 use crate::usage::{runtime, CliError, CliResult};
-use salient_report::{read_npy_u8, render_loglog_png, HLine, Line, LogLogPlot, Table};
+use salient_report::{read_npy_u8, render_loglog, HLine, Line, LogLogPlot, Table};
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -560,7 +560,7 @@ fn plot_misclassified(
         point_labels: labels,
         markers: true,
     };
-    render_loglog_png(&plot, path, 1400, 1000)
+    render_loglog(&plot, path, 1400, 1000)
         .map_err(|e| runtime("plotting misclassified_vs_cpu.png", e))
 }
 

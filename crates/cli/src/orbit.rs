@@ -9,7 +9,10 @@ use salient_core::orbit::{OrbitConfig, OrbitResult, Requests, Thresholds};
 use salient_core::run::{run_henon_heiles, MethodRun, Vectors};
 use salient_core::section::on_section;
 use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method};
-use salient_report::{render_loglog_png, HLine, Line, LogLogPlot, ReportError};
+use salient_report::{
+    render_lines, render_loglog, render_panels, HLine, Line, LinePlot, LogLogPlot, Panels,
+    ReportError,
+};
 use serde_json::{json, Map, Value};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -353,7 +356,7 @@ fn summary_text(s: &Value) -> String {
     if let Some(d) = s["out_dir"].as_str() {
         let _ = writeln!(
             t,
-            "wrote {d}/series.csv, crossings.csv, indicators.png, energy.png, orbit.json"
+            "wrote {d}/series.csv, crossings.csv, indicators.png, energy.png, section.png, orbit.json"
         );
     }
     t
@@ -392,43 +395,58 @@ fn write_outputs(
     }
     write_file(&dir.join("crossings.csv"), &cross)?;
 
+    plot_orbit(job, r, k_max, dir)
+}
+
+/// indicators.png (SALI with its thresholds, GALI_k, the mLE: three panels), energy.png and
+/// section.png (the crossings of q1 = 0 upward) of one orbit; warnings for plots without data.
+fn plot_orbit(
+    job: &OrbitJob,
+    r: &OrbitResult<2>,
+    k_max: usize,
+    dir: &Path,
+) -> CliResult<Vec<String>> {
     let t: Vec<f64> = r.series.iter().map(|s| s.t).collect();
-    let sali: Vec<f64> = r.series.iter().map(|s| s.sali).collect();
+    let column = |f: &dyn Fn(&salient_core::orbit::Sample) -> f64| -> Vec<f64> {
+        r.series.iter().map(f).collect()
+    };
+    let sali = column(&|s| s.sali);
     let gali: Vec<Vec<f64>> = (0..k_max.saturating_sub(1))
-        .map(|k| r.series.iter().map(|s| s.gali[k]).collect())
+        .map(|k| column(&|s| s.gali[k]))
         .collect();
+    let mle = column(&|s| s.mle);
+    let energy = column(&|s| s.energy_error);
     let labels: Vec<String> = (2..=k_max).map(|k| format!("GALI_{k}")).collect();
-    let mut lines = vec![Line {
-        label: "SALI",
-        xs: &t,
-        ys: &sali,
-    }];
-    for (g, l) in gali.iter().zip(&labels) {
-        lines.push(Line {
-            label: l,
-            xs: &t,
-            ys: g,
-        });
-    }
     let title = format!(
-        "{} τ = {}  (q2, p2) = ({}, {})",
+        "{} τ = {}  (q₂, p₂) = ({}, {})",
         job.method.name(),
         job.config.tau,
         job.q[1],
         job.p[1]
     );
-    let mut warnings = Vec::new();
     let th = job.config.thresholds;
     let (regular_label, chaotic_label) = (
         format!("regular ≥ {:e}", th.regular),
         format!("chaotic < {:e}", th.chaotic),
     );
-    let indicators = LogLogPlot {
-        title: &title,
+    let panel = |title, y_label, lines, hlines| LogLogPlot {
+        title,
         x_label: "t",
-        y_label: "SALI, GALI",
+        y_label,
         lines,
-        hlines: vec![
+        hlines,
+        point_labels: Vec::new(),
+        markers: false,
+    };
+    let sali_panel = panel(
+        &title,
+        "SALI",
+        vec![Line {
+            label: "SALI",
+            xs: &t,
+            ys: &sali,
+        }],
+        vec![
             HLine {
                 label: &regular_label,
                 y: th.regular,
@@ -438,30 +456,87 @@ fn write_outputs(
                 y: th.chaotic,
             },
         ],
-        point_labels: Vec::new(),
-        markers: false,
+    );
+    let gali_lines = gali
+        .iter()
+        .zip(&labels)
+        .map(|(g, l)| Line {
+            label: l,
+            xs: &t,
+            ys: g,
+        })
+        .collect();
+    let mle_line = vec![Line {
+        label: "mLE (finite-time)",
+        xs: &t,
+        ys: &mle,
+    }];
+    let indicators = Panels {
+        panels: vec![
+            sali_panel,
+            panel("", "GALI_k", gali_lines, Vec::new()),
+            panel("", "mLE", mle_line, Vec::new()),
+        ],
     };
-    plot(&indicators, &dir.join("indicators.png"), &mut warnings)?;
-    let energy: Vec<f64> = r.series.iter().map(|s| s.energy_error).collect();
-    let energy_plot = LogLogPlot {
-        title: &title,
-        x_label: "t",
-        y_label: "|ΔH/H|",
-        lines: vec![Line {
+    let mut warnings = Vec::new();
+    let path = dir.join("indicators.png");
+    warn_if_empty(
+        render_panels(&indicators, &path, 1000, 1300),
+        &path,
+        &mut warnings,
+    )?;
+    let energy_plot = panel(
+        &title,
+        "|ΔH/H|",
+        vec![Line {
             label: "|ΔH/H|",
             xs: &t,
             ys: &energy,
         }],
-        hlines: Vec::new(),
-        point_labels: Vec::new(),
-        markers: false,
-    };
-    plot(&energy_plot, &dir.join("energy.png"), &mut warnings)?;
+        Vec::new(),
+    );
+    let path = dir.join("energy.png");
+    warn_if_empty(
+        render_loglog(&energy_plot, &path, 1000, 700),
+        &path,
+        &mut warnings,
+    )?;
+    plot_section(r, &title, dir, &mut warnings)?;
     Ok(warnings)
 }
 
-fn plot(p: &LogLogPlot, path: &Path, warnings: &mut Vec<String>) -> CliResult<()> {
-    match render_loglog_png(p, path, 1000, 700) {
+/// section.png: where the orbit crosses q1 = 0 upward, in the (q₂, p₂) plane.
+fn plot_section(
+    r: &OrbitResult<2>,
+    title: &str,
+    dir: &Path,
+    warnings: &mut Vec<String>,
+) -> CliResult<()> {
+    let q2: Vec<f64> = r.crossings.iter().map(|c| c.q[1]).collect();
+    let p2: Vec<f64> = r.crossings.iter().map(|c| c.p[1]).collect();
+    let plot = LinePlot {
+        title,
+        x_label: "q₂",
+        y_label: "p₂",
+        lines: vec![Line {
+            label: "",
+            xs: &q2,
+            ys: &p2,
+        }],
+        y_range: None,
+        dots: true,
+    };
+    let path = dir.join("section.png");
+    warn_if_empty(render_lines(&plot, &path, 900, 800), &path, warnings)
+}
+
+/// Ok for a drawn plot, a warning for a plot with nothing to draw, an error otherwise.
+fn warn_if_empty(
+    drawn: Result<(), ReportError>,
+    path: &Path,
+    warnings: &mut Vec<String>,
+) -> CliResult<()> {
+    match drawn {
         Ok(()) => Ok(()),
         Err(ReportError::EmptyData(what)) => {
             // The file's name only: `path` lies in the staging folder, gone once published.

@@ -9,7 +9,7 @@ use salient_core::precision::{
 };
 use salient_core::section::on_section;
 use salient_core::{Hamiltonian, HenonHeiles};
-use salient_report::{render_loglog_png, Line, LogLogPlot, Table};
+use salient_report::{render_loglog, Line, LogLogPlot, Table};
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -277,7 +277,7 @@ fn write_outputs(
         point_labels: labels,
         markers: true,
     };
-    render_loglog_png(&plot, &dir.join("work_precision.png"), 1400, 1000)
+    render_loglog(&plot, &dir.join("work_precision.png"), 1400, 1000)
         .map_err(|e| runtime("plotting work_precision.png", e))?;
     Ok(())
 }

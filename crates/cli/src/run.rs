@@ -13,10 +13,7 @@ use salient_grid::{
     process_cpu_seconds, run_embedded_forecast, takes_forecast, CellRun, Counts, Forecast, Grid,
     Ledger, Mode, ScanOrder,
 };
-use salient_report::{
-    render_lines_png, render_loglog_png, write_npy_f64, write_npy_u8, Line, LinePlot, LogLogPlot,
-    Table,
-};
+use salient_report::{render_lines, write_npy_f64, write_npy_u8, Line, LinePlot, Table};
 use serde_json::{json, Value};
 use std::fmt::Write as _;
 use std::io::IsTerminal;
@@ -681,9 +678,9 @@ fn plot_percent_vs_energy(results: &[RunResult], path: &Path) -> CliResult<()> {
         y_label: "% of cells",
         lines: lines_of(&series),
         y_range: Some((0.0, 100.0)),
+        dots: false,
     };
-    render_lines_png(&plot, path, 1200, 800)
-        .map_err(|e| runtime("plotting percent_vs_energy.png", e))
+    render_lines(&plot, path, 1200, 800).map_err(|e| runtime("plotting percent_vs_energy.png", e))
 }
 
 /// Fig. 7: full-mode percentages at checkpoints against t, and fast-PSS runs at their t_final.
@@ -691,7 +688,12 @@ fn plot_percent_vs_t(results: &[RunResult], path: &Path) -> CliResult<()> {
     let mut series: Vec<(String, Vec<f64>, Vec<f64>)> = Vec::new();
     for r in results.iter().filter(|r| !r.checkpoints.is_empty()) {
         let t: Vec<f64> = r.checkpoints.iter().map(|c| c.0).collect();
-        let name = format!("{} τ={}", r.spec.method.name(), r.spec.tau);
+        let name = format!(
+            "{} τ={} t={:e}",
+            r.spec.method.name(),
+            r.spec.tau,
+            r.spec.t_final
+        );
         series.push((
             format!("full {name}: regular"),
             t.clone(),
@@ -730,16 +732,20 @@ fn plot_percent_vs_t(results: &[RunResult], path: &Path) -> CliResult<()> {
             fast.iter().map(|r| r.counts.percent().1).collect(),
         ));
     }
-    let plot = LogLogPlot {
-        title: "percent of compatible cells against t_final",
-        x_label: "t",
-        y_label: "% of cells",
+    // log₁₀ t on a linear axis (the checkpoints are log-spaced, as in the paper's figures),
+    // percentages on a linear one from 0 to 100 so that a class at 0 % is drawn.
+    for (_, t, _) in &mut series {
+        t.iter_mut().for_each(|t| *t = t.log10());
+    }
+    let plot = LinePlot {
+        title: "percent of compatible cells against t",
+        x_label: "log₁₀ t",
+        y_label: "% of compatible cells",
         lines: lines_of(&series),
-        hlines: Vec::new(),
-        point_labels: Vec::new(),
-        markers: true,
+        y_range: Some((0.0, 100.0)),
+        dots: false,
     };
-    render_loglog_png(&plot, path, 1200, 800).map_err(|e| runtime("plotting percent_vs_t.png", e))
+    render_lines(&plot, path, 1200, 800).map_err(|e| runtime("plotting percent_vs_t.png", e))
 }
 
 #[cfg(test)]

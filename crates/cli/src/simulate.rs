@@ -6,7 +6,7 @@ use crate::output::{print_result, write_tables, Staged};
 use crate::usage::{runtime, CliError, CliResult};
 use clap::Args;
 use salient_coordinator::scheduler::Config;
-use salient_report::{render_loglog_png, Line, LogLogPlot, Table};
+use salient_report::{render_loglog, Line, LogLogPlot, Table};
 use salient_sim::{ForecastSource, Params, Point, Simulation};
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -334,7 +334,7 @@ fn write_outputs(
         point_labels: Vec::new(),
         markers: true,
     };
-    render_loglog_png(&plot, &dir.join("speedup.png"), 1200, 900)
+    render_loglog(&plot, &dir.join("speedup.png"), 1200, 900)
         .map_err(|e| runtime("drawing speedup.png", e))?;
     write_timeline(&dir.join("timeline.csv"), points)
 }

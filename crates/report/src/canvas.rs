@@ -78,14 +78,20 @@ pub(crate) struct Canvas {
     pub plot_area: PixelRect,
 }
 
-/// Checks the requested size and returns a white RGB buffer for it.
-pub(crate) fn white_buffer(width: u32, height: u32) -> Result<Vec<u8>, ReportError> {
+/// Refuses image sizes outside the range the layouts are designed for.
+pub(crate) fn check_size(width: u32, height: u32) -> Result<(), ReportError> {
     if width < MIN_WIDTH || height < MIN_HEIGHT || width > MAX_SIDE || height > MAX_SIDE {
         return Err(ReportError::Plot(format!(
             "image size {width}x{height} is outside the supported range \
              {MIN_WIDTH}x{MIN_HEIGHT} ..= {MAX_SIDE}x{MAX_SIDE}"
         )));
     }
+    Ok(())
+}
+
+/// Checks the requested size and returns a white RGB buffer for it.
+pub(crate) fn white_buffer(width: u32, height: u32) -> Result<Vec<u8>, ReportError> {
+    check_size(width, height)?;
     Ok(vec![255u8; width as usize * height as usize * 3])
 }
 

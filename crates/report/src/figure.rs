@@ -7,9 +7,7 @@ use plotters::backend::{BitMapBackend, SVGBackend};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use crate::canvas::{
-    ensure_font, white_buffer, Canvas, PixelRect, MAX_SIDE, MIN_HEIGHT, MIN_WIDTH,
-};
+use crate::canvas::{check_size, ensure_font, white_buffer, Canvas, PixelRect};
 use crate::error::{plot_err, ReportError};
 
 /// A drawing that can be rendered on any backend.
@@ -51,16 +49,6 @@ impl ImageFormat {
     }
 }
 
-fn check_size((width, height): (u32, u32)) -> Result<(), ReportError> {
-    if width < MIN_WIDTH || height < MIN_HEIGHT || width > MAX_SIDE || height > MAX_SIDE {
-        return Err(ReportError::Plot(format!(
-            "image size {width}x{height} is outside the supported range \
-             {MIN_WIDTH}x{MIN_HEIGHT} ..= {MAX_SIDE}x{MAX_SIDE}"
-        )));
-    }
-    Ok(())
-}
-
 /// The figure on a white RGB canvas of `size` pixels.
 pub(crate) fn draw_png<F: Figure>(fig: &F, size: (u32, u32)) -> Result<Canvas, ReportError> {
     ensure_font()?;
@@ -85,7 +73,7 @@ pub(crate) fn draw_png<F: Figure>(fig: &F, size: (u32, u32)) -> Result<Canvas, R
 pub(crate) fn draw_svg<F: Figure>(fig: &F, size: (u32, u32)) -> Result<String, ReportError> {
     ensure_font()?;
     fig.validate()?;
-    check_size(size)?;
+    check_size(size.0, size.1)?;
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
@@ -120,16 +108,25 @@ pub(crate) mod counting {
 
     use super::*;
 
-    /// Rectangles (filled or not, and single pixels) and texts drawn.
+    /// Elements drawn, by kind (a single pixel is a rectangle in SVG); invisible ones (alpha 0),
+    /// which the SVG backend leaves out, are not counted.
     #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
     pub struct Counts {
         pub rects: usize,
         pub texts: usize,
+        pub lines: usize,
+        pub paths: usize,
+        pub circles: usize,
+        pub polygons: usize,
     }
 
     pub struct Counting<'a, DB> {
         pub inner: DB,
         pub counts: &'a mut Counts,
+    }
+
+    fn visible(c: BackendColor) -> usize {
+        usize::from(c.alpha != 0.0)
     }
 
     impl<DB: DrawingBackend> DrawingBackend for Counting<'_, DB> {
@@ -149,7 +146,7 @@ pub(crate) mod counting {
             point: BackendCoord,
             color: BackendColor,
         ) -> Result<(), DrawingErrorKind<DB::ErrorType>> {
-            self.counts.rects += 1;
+            self.counts.rects += visible(color);
             self.inner.draw_pixel(point, color)
         }
         fn draw_line<S: BackendStyle>(
@@ -158,6 +155,7 @@ pub(crate) mod counting {
             to: BackendCoord,
             style: &S,
         ) -> Result<(), DrawingErrorKind<DB::ErrorType>> {
+            self.counts.lines += visible(style.color());
             self.inner.draw_line(from, to, style)
         }
         fn draw_rect<S: BackendStyle>(
@@ -167,8 +165,34 @@ pub(crate) mod counting {
             style: &S,
             fill: bool,
         ) -> Result<(), DrawingErrorKind<DB::ErrorType>> {
-            self.counts.rects += 1;
+            self.counts.rects += visible(style.color());
             self.inner.draw_rect(upper_left, bottom_right, style, fill)
+        }
+        fn draw_path<S: BackendStyle, I: IntoIterator<Item = BackendCoord>>(
+            &mut self,
+            path: I,
+            style: &S,
+        ) -> Result<(), DrawingErrorKind<DB::ErrorType>> {
+            self.counts.paths += visible(style.color());
+            self.inner.draw_path(path, style)
+        }
+        fn draw_circle<S: BackendStyle>(
+            &mut self,
+            center: BackendCoord,
+            radius: u32,
+            style: &S,
+            fill: bool,
+        ) -> Result<(), DrawingErrorKind<DB::ErrorType>> {
+            self.counts.circles += visible(style.color());
+            self.inner.draw_circle(center, radius, style, fill)
+        }
+        fn fill_polygon<S: BackendStyle, I: IntoIterator<Item = BackendCoord>>(
+            &mut self,
+            vert: I,
+            style: &S,
+        ) -> Result<(), DrawingErrorKind<DB::ErrorType>> {
+            self.counts.polygons += visible(style.color());
+            self.inner.fill_polygon(vert, style)
         }
         fn draw_text<TStyle: BackendTextStyle>(
             &mut self,
@@ -176,7 +200,7 @@ pub(crate) mod counting {
             style: &TStyle,
             pos: BackendCoord,
         ) -> Result<(), DrawingErrorKind<DB::ErrorType>> {
-            self.counts.texts += 1;
+            self.counts.texts += visible(style.color());
             self.inner.draw_text(text, style, pos)
         }
         fn estimate_text_size<TStyle: BackendTextStyle>(
@@ -211,6 +235,10 @@ pub(crate) mod counting {
         Counts {
             rects: svg.matches("<rect").count(),
             texts: svg.matches("<text").count(),
+            lines: svg.matches("<line ").count(),
+            paths: svg.matches("<polyline").count(),
+            circles: svg.matches("<circle").count(),
+            polygons: svg.matches("<polygon").count(),
         }
     }
 }

@@ -2,12 +2,13 @@
 //! and other programs.
 //!
 //! By design this crate owns the tables (Markdown, CSV, JSON), the `.npy` array writers, and the
-//! PNG maps and plots; nothing here integrates or computes indicators. So far the plots and
+//! maps and plots (PNG and SVG); nothing here integrates or computes indicators. So far the plots and
 //! plain tables ([`Table`], Markdown and CSV) and NumPy `.npy` arrays ([`write_npy_f64`]) exist:
 //!
-//! * [`render_loglog_png`] draws lines on log-log axes (SALI/GALI against time, work-precision
-//!   diagrams), with dashed reference lines and a legend;
-//! * [`render_lines_png`] draws lines on linear axes (percentages against energy);
+//! * [`render_loglog`] draws lines on log-log axes (SALI/GALI against time, work-precision
+//!   diagrams), with dashed reference lines and a legend, and [`render_panels`] several of
+//!   them stacked in one image;
+//! * [`render_lines`] draws lines on linear axes (percentages against energy);
 //! * [`render_cell_map`] draws a field of categories over a 2-D grid (the class of each cell
 //!   with a legend, or a quantity in bands with a stepped colour bar), as PNG or SVG from the
 //!   same drawing.
@@ -28,8 +29,8 @@ mod table;
 pub use cellmap::{render_cell_map, Category, CellMap, Scale, CELL_MAP_SIZE};
 pub use error::ReportError;
 pub use figure::ImageFormat;
-pub use lines::{render_lines_png, LinePlot};
-pub use loglog::{render_loglog_png, HLine, Line, LogLogPlot};
+pub use lines::{render_lines, LinePlot};
+pub use loglog::{render_loglog, render_panels, HLine, Line, LogLogPlot, Panels};
 pub use npy::{npy_bytes_f64, read_npy_u8, write_npy_f64, write_npy_u8};
 pub use table::Table;
 pub use table::NOTHING;

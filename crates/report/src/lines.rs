@@ -3,11 +3,12 @@
 
 use std::path::Path;
 
-use plotters::backend::BitMapBackend;
+use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use crate::canvas::{ensure_font, white_buffer, Canvas, PixelRect, FONT_FAMILY};
+use crate::canvas::{PixelRect, FONT_FAMILY};
 use crate::error::{plot_err, ReportError};
+use crate::figure::{write_figure, Figure};
 use crate::loglog::{check_lengths, draw_legend, Line, Swatch, PALETTE};
 
 /// A plot with linear x and y axes.
@@ -19,17 +20,19 @@ pub struct LinePlot<'a> {
     pub lines: Vec<Line<'a>>,
     /// The y axis's span; `None`: the data's, padded.
     pub y_range: Option<(f64, f64)>,
+    /// Points as dots, unjoined (a surface of section), instead of joined markers.
+    pub dots: bool,
 }
 
-/// Renders `plot` as a `width` x `height` PNG at `path` (which must end in `.png`). Points
+/// Renders `plot` as a `width` x `height` image at `path`, PNG or SVG by its extension. Points
 /// with a non-finite coordinate are skipped; [`ReportError::EmptyData`] when none is left.
-pub fn render_lines_png(
+pub fn render_lines(
     plot: &LinePlot,
     path: &Path,
     width: u32,
     height: u32,
 ) -> Result<(), ReportError> {
-    draw_lines(plot, width, height)?.write_png(path)
+    write_figure(plot, path, (width, height))
 }
 
 fn finite_points<'a>(line: &Line<'a>) -> Vec<(f64, f64)> {
@@ -57,8 +60,8 @@ fn padded(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
     Some((lo - pad, hi + pad))
 }
 
-pub(crate) fn draw_lines(plot: &LinePlot, width: u32, height: u32) -> Result<Canvas, ReportError> {
-    ensure_font()?;
+/// Every line's finite points and the axes' spans.
+fn points_and_ranges(plot: &LinePlot) -> Result<(Vec<Points>, Ranges), ReportError> {
     check_lengths(&plot.lines)?;
     let points: Vec<Vec<(f64, f64)>> = plot.lines.iter().map(finite_points).collect();
     let all = || points.iter().flatten();
@@ -68,31 +71,38 @@ pub(crate) fn draw_lines(plot: &LinePlot, width: u32, height: u32) -> Result<Can
         Some(r) => return Err(ReportError::Plot(format!("empty y range {r:?}"))),
         None => padded(all().map(|p| p.1)).ok_or(ReportError::EmptyData("no finite point"))?,
     };
-    let mut rgb = white_buffer(width, height)?;
-    let plot_area = paint(plot, &points, (x_range, y_range), &mut rgb, (width, height))?;
-    Ok(Canvas {
-        rgb,
-        width,
-        height,
-        plot_area,
-    })
+    Ok((points, (x_range, y_range)))
+}
+
+impl Figure for LinePlot<'_> {
+    fn validate(&self) -> Result<(), ReportError> {
+        points_and_ranges(self).map(|_| ())
+    }
+
+    fn draw<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, Shift>,
+        size: (u32, u32),
+    ) -> Result<PixelRect, ReportError> {
+        let (points, ranges) = points_and_ranges(self)?;
+        paint(self, &points, ranges, root, size)
+    }
 }
 
 type Ranges = ((f64, f64), (f64, f64));
+type Points = Vec<(f64, f64)>;
 
-fn paint(
+fn paint<DB: DrawingBackend>(
     plot: &LinePlot,
     points: &[Vec<(f64, f64)>],
     ((x_lo, x_hi), (y_lo, y_hi)): Ranges,
-    rgb: &mut [u8],
+    root: &DrawingArea<DB, Shift>,
     (width, height): (u32, u32),
 ) -> Result<PixelRect, ReportError> {
     let s = (f64::from(width.min(height)) / 600.0).clamp(0.5, 3.0);
     let px = |v: f64| (v * s).round().max(1.0) as u32;
     let font = |size: f64| (FONT_FAMILY, size * s).into_font().color(&BLACK);
     let stroke = px(2.0);
-    let root = BitMapBackend::with_buffer(rgb, (width, height)).into_drawing_area();
-    root.fill(&WHITE).map_err(plot_err)?;
     let legend: Vec<(&str, Swatch)> = plot
         .lines
         .iter()
@@ -136,6 +146,15 @@ fn paint(
     let plot_area = PixelRect::from_ranges(chart.plotting_area().get_pixel_range());
     for (k, pts) in points.iter().enumerate() {
         let colour = PALETTE[k % PALETTE.len()];
+        if plot.dots {
+            chart
+                .draw_series(
+                    pts.iter()
+                        .map(|&p| Circle::new(p, px(1.0) as i32, colour.filled())),
+                )
+                .map_err(plot_err)?;
+            continue;
+        }
         chart
             .draw_series(LineSeries::new(
                 pts.iter().copied(),
@@ -152,13 +171,18 @@ fn paint(
     if !legend.is_empty() {
         draw_legend(&legend_area, &legend, plot_area.y0, s, &legend_font, stroke)?;
     }
-    root.present().map_err(plot_err)?;
     Ok(plot_area)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::canvas::Canvas;
+    use crate::figure::draw_png;
+
+    fn draw_lines(plot: &LinePlot, width: u32, height: u32) -> Result<Canvas, ReportError> {
+        draw_png(plot, (width, height))
+    }
 
     #[test]
     fn zero_values_are_drawn_and_lines_pass_through_their_points() {
@@ -173,6 +197,7 @@ mod tests {
                 ys: &ys,
             }],
             y_range: Some((0.0, 100.0)),
+            dots: false,
         };
         let c = draw_lines(&plot, 600, 400).unwrap();
         let a = c.plot_area;
@@ -197,6 +222,7 @@ mod tests {
                 ys: &ys,
             }],
             y_range: None,
+            dots: false,
         };
         assert!(matches!(
             draw_lines(&plot, 600, 400),

@@ -2,13 +2,13 @@
 
 use std::path::Path;
 
-use plotters::backend::BitMapBackend;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
-use crate::canvas::{ensure_font, white_buffer, Canvas, PixelRect, FONT_FAMILY};
+use crate::canvas::{PixelRect, FONT_FAMILY};
 use crate::error::{plot_err, ReportError};
+use crate::figure::{write_figure, Figure};
 
 /// A line (or point set) on a plot.
 #[derive(Clone, Copy, Debug)]
@@ -72,19 +72,19 @@ const HLINE_DASHES: [(f64, f64); 3] = [(10.0, 5.0), (4.0, 4.0), (16.0, 5.0)];
 const BOLD_GRID: RGBColor = RGBColor(215, 215, 215);
 const LIGHT_GRID: RGBColor = RGBColor(238, 238, 238);
 
-/// Renders `plot` as a `width` x `height` PNG at `path` (which must end in `.png`).
+/// Renders `plot` as a `width` x `height` image at `path`, PNG or SVG by its extension.
 ///
 /// Points whose x or y is non-positive, NaN, infinite, or outside `[1e-300, 1e300]` cannot be
 /// shown on log axes and are skipped; a line is broken at a skipped point rather than joined
 /// across it. The axes span whole decades around the remaining data and the reference lines.
 /// Returns [`ReportError::EmptyData`] when no line (or point label) has a drawable point.
-pub fn render_loglog_png(
+pub fn render_loglog(
     plot: &LogLogPlot,
     path: &Path,
     width: u32,
     height: u32,
 ) -> Result<(), ReportError> {
-    draw_loglog(plot, width, height)?.write_png(path)
+    write_figure(plot, path, (width, height))
 }
 
 /// Every line has as many y values as x values.
@@ -275,31 +275,80 @@ pub(crate) enum Swatch {
     Dashed(RGBColor, (f64, f64)),
 }
 
-/// Draws `plot` onto a fresh in-memory canvas.
-pub(crate) fn draw_loglog(
-    plot: &LogLogPlot,
-    width: u32,
-    height: u32,
-) -> Result<Canvas, ReportError> {
-    ensure_font()?;
-    check_lengths(&plot.lines)?;
-    let decades = axis_decades(plot)?;
-    let mut rgb = white_buffer(width, height)?;
-    let plot_area = paint(plot, decades, &mut rgb, width, height)?;
-    Ok(Canvas {
-        rgb,
-        width,
-        height,
-        plot_area,
-    })
+impl Figure for LogLogPlot<'_> {
+    fn validate(&self) -> Result<(), ReportError> {
+        check_lengths(&self.lines)?;
+        axis_decades(self).map(|_| ())
+    }
+
+    fn draw<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, Shift>,
+        (width, height): (u32, u32),
+    ) -> Result<PixelRect, ReportError> {
+        paint(self, axis_decades(self)?, root, (width, height), None)
+    }
 }
 
-fn paint(
-    plot: &LogLogPlot,
-    (x_lo_e, x_hi_e, y_lo_e, y_hi_e): (i32, i32, i32, i32),
-    rgb: &mut [u8],
+/// Log-log plots stacked in one image, top to bottom, each with its own axes and legend, their
+/// plotting areas equally wide.
+#[derive(Clone, Debug)]
+pub struct Panels<'a> {
+    pub panels: Vec<LogLogPlot<'a>>,
+}
+
+/// Renders `panels` as a `width` x `height` image at `path`, PNG or SVG by its extension, the
+/// height shared evenly. A panel with nothing drawable is an error, as for one plot.
+pub fn render_panels(
+    panels: &Panels,
+    path: &Path,
     width: u32,
     height: u32,
+) -> Result<(), ReportError> {
+    write_figure(panels, path, (width, height))
+}
+
+impl Figure for Panels<'_> {
+    fn validate(&self) -> Result<(), ReportError> {
+        if self.panels.is_empty() {
+            return Err(ReportError::EmptyData("no panel"));
+        }
+        self.panels.iter().try_for_each(|p| p.validate())
+    }
+
+    /// Returns the first panel's data area.
+    fn draw<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, Shift>,
+        (width, height): (u32, u32),
+    ) -> Result<PixelRect, ReportError> {
+        let n = self.panels.len() as u32;
+        let areas = root.split_evenly((self.panels.len(), 1));
+        let mut first = None;
+        // One legend width and one span of x for all, so that the panels' x axes line up.
+        let legend_w = width / 4;
+        let decades = self
+            .panels
+            .iter()
+            .map(axis_decades)
+            .collect::<Result<Vec<_>, _>>()?;
+        let x_lo = decades.iter().map(|d| d.0).min().expect("validated");
+        let x_hi = decades.iter().map(|d| d.1).max().expect("validated");
+        for ((plot, area), d) in self.panels.iter().zip(&areas).zip(decades) {
+            let size = (width, height / n);
+            let rect = paint(plot, (x_lo, x_hi, d.2, d.3), area, size, Some(legend_w))?;
+            first.get_or_insert(rect);
+        }
+        Ok(first.expect("validated: at least one panel"))
+    }
+}
+
+fn paint<DB: DrawingBackend>(
+    plot: &LogLogPlot,
+    (x_lo_e, x_hi_e, y_lo_e, y_hi_e): (i32, i32, i32, i32),
+    root: &DrawingArea<DB, Shift>,
+    (width, height): (u32, u32),
+    fixed_legend_w: Option<u32>,
 ) -> Result<PixelRect, ReportError> {
     let s = (f64::from(width.min(height)) / 600.0).clamp(0.5, 3.0);
     let px = |v: f64| (v * s).round().max(1.0) as u32;
@@ -309,9 +358,6 @@ fn paint(
     let legend_font = (FONT_FAMILY, 14.0 * s).into_font().color(&BLACK);
     let note_font = (FONT_FAMILY, 11.0 * s).into_font().color(&BLACK);
     let stroke = px(2.0);
-
-    let root = BitMapBackend::with_buffer(rgb, (width, height)).into_drawing_area();
-    root.fill(&WHITE).map_err(plot_err)?;
 
     // Legend rows: drawable lines and reference lines that carry a label.
     let mut legend: Vec<(&str, Swatch)> = Vec::new();
@@ -327,7 +373,9 @@ fn paint(
         }
     }
     let swatch_w = 34.0 * s;
-    let legend_w = if legend.is_empty() {
+    let legend_w = if let Some(w) = fixed_legend_w {
+        w
+    } else if legend.is_empty() {
         0
     } else {
         let mut text_w = 0;
@@ -441,14 +489,13 @@ fn paint(
     if let Some(area) = legend_area {
         draw_legend(&area, &legend, plot_area.y0, s, &legend_font, stroke)?;
     }
-    root.present().map_err(plot_err)?;
     Ok(plot_area)
 }
 
 /// Draws the legend rows in the strip to the right of the chart, starting level with the top of
 /// the plotting area (`top`, in image pixels).
-pub(crate) fn draw_legend(
-    area: &DrawingArea<BitMapBackend, Shift>,
+pub(crate) fn draw_legend<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
     rows: &[(&str, Swatch)],
     top: i32,
     s: f64,
@@ -498,6 +545,12 @@ pub(crate) fn draw_legend(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::canvas::Canvas;
+    use crate::figure::draw_png;
+
+    fn draw_loglog(plot: &LogLogPlot, width: u32, height: u32) -> Result<Canvas, ReportError> {
+        draw_png(plot, (width, height))
+    }
 
     /// A pixel that is drawn ink (text, axes, data, reference lines), not background or grid.
     fn is_ink(p: [u8; 3]) -> bool {
@@ -714,7 +767,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("empty.png");
         assert!(matches!(
-            render_loglog_png(&only_hlines, &path, 800, 600),
+            render_loglog(&only_hlines, &path, 800, 600),
             Err(ReportError::EmptyData(_))
         ));
         assert!(!path.exists(), "no file is written for an empty plot");
@@ -758,6 +811,64 @@ mod tests {
         ));
     }
 
+    /// The texts of an SVG document, in order.
+    fn svg_texts(svg: &str) -> Vec<&str> {
+        svg.split("<text")
+            .skip(1)
+            .filter_map(|t| t.split('>').nth(1)?.split('<').next())
+            .map(str::trim)
+            .collect()
+    }
+
+    #[test]
+    fn panels_share_one_time_axis_and_draw_the_same_in_svg_and_png() {
+        use crate::figure::counting::{png_counts, svg_counts};
+        use crate::figure::draw_svg;
+        let late_x = [1e3, 1e4];
+        let late_y = [1e-2, 1e-3];
+        let panels = Panels {
+            panels: vec![
+                sali_plot(&XS, &YS),
+                LogLogPlot {
+                    title: "",
+                    ..sali_plot(&late_x, &late_y)
+                },
+            ],
+        };
+        let size = (800, 900);
+        let svg = draw_svg(&panels, size).unwrap();
+        assert_eq!(svg_counts(&svg), png_counts(&panels, size));
+        // The first panel's data end at 1e3, the second's start there: both time axes run
+        // from 1e0 to 1e4 (no y axis reaches 1e1).
+        let texts = svg_texts(&svg);
+        for label in ["1e1", "1e4"] {
+            assert_eq!(
+                texts.iter().filter(|t| **t == label).count(),
+                2,
+                "{texts:?}"
+            );
+        }
+        let first = draw_png(&panels, size).unwrap().plot_area;
+        assert!(
+            first.y1 < 450,
+            "the first panel lies in the upper half: {first:?}"
+        );
+    }
+
+    #[test]
+    fn panels_need_a_drawable_panel_each() {
+        let nan = [f64::NAN; 4];
+        let empty = Panels { panels: vec![] };
+        assert!(matches!(
+            draw_png(&empty, (800, 600)),
+            Err(ReportError::EmptyData(_))
+        ));
+        let one_empty = Panels {
+            panels: vec![sali_plot(&XS, &YS), sali_plot(&XS, &nan)],
+        };
+        assert!(draw_png(&one_empty, (800, 600)).is_err());
+    }
+
     #[test]
     fn png_file_has_png_signature() {
         let dir = tempfile::tempdir().unwrap();
@@ -767,19 +878,19 @@ mod tests {
             point_labels: vec![(10.0, 1e-7, "h = 0.1".to_string())],
             ..sali_plot(&XS, &YS)
         };
-        render_loglog_png(&plot, &path, 640, 480).unwrap();
+        render_loglog(&plot, &path, 640, 480).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         assert!(bytes.len() > 1000);
         assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
 
         let wrong = dir.path().join("sali.jpg");
         assert!(matches!(
-            render_loglog_png(&plot, &wrong, 640, 480),
+            render_loglog(&plot, &wrong, 640, 480),
             Err(ReportError::Plot(_))
         ));
         let missing_dir = dir.path().join("no/such/dir/sali.png");
         assert!(matches!(
-            render_loglog_png(&plot, &missing_dir, 640, 480),
+            render_loglog(&plot, &missing_dir, 640, 480),
             Err(ReportError::Io(_))
         ));
     }
