@@ -9,7 +9,7 @@ use salient_core::precision::{
 };
 use salient_core::section::on_section;
 use salient_core::{Hamiltonian, HenonHeiles};
-use salient_report::{render_loglog, Line, LogLogPlot, Table};
+use salient_report::{render_loglog, HLine, Line, LogLogPlot, Table};
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -248,10 +248,24 @@ fn write_outputs(
 ) -> CliResult<()> {
     write_tables(dir, "precision", table, summary)?;
 
-    // One line per method and protocol: end-point error against wall time.
+    // One line per method and protocol: end-point error against wall time. An error of 0 (the
+    // end point equals the reference's in every digit) is drawn on a floor a decade below the
+    // smallest nonzero one, 1e-17 at most, that a dashed line labels.
+    let smallest = rows
+        .iter()
+        .map(|r| r.state_error)
+        .filter(|&e| e > 0.0)
+        .fold(f64::INFINITY, f64::min);
+    let floor = 10f64.powf((smallest.min(1e-16).log10() - 1.0).floor());
+    let any_zero = rows.iter().any(|r| r.state_error == 0.0);
     let mut groups: BTreeMap<String, (Vec<f64>, Vec<f64>)> = BTreeMap::new();
     let mut labels = Vec::new();
     for r in rows {
+        let error = if r.state_error == 0.0 {
+            floor
+        } else {
+            r.state_error
+        };
         let run = &r.setting.run;
         let key = if run.method.is_adaptive() {
             format!("{} ({})", run.method.name(), run.protocol.as_str())
@@ -260,20 +274,28 @@ fn write_outputs(
         };
         let g = groups.entry(key).or_default();
         g.0.push(r.wall_s);
-        g.1.push(r.state_error);
-        labels.push((r.wall_s, r.state_error, label(r)));
+        g.1.push(error);
+        labels.push((r.wall_s, error, label(r)));
     }
     let lines: Vec<Line> = groups
         .iter()
         .map(|(k, (xs, ys))| Line { label: k, xs, ys })
         .collect();
     let title = format!("work-precision, orbit {name}, t = {t_final}");
+    let floor_label = format!("error 0 (drawn at {floor:e})");
     let plot = LogLogPlot {
         title: &title,
         x_label: "wall time (s)",
         y_label: "end-point error vs taylor-dd",
         lines,
-        hlines: Vec::new(),
+        hlines: if any_zero {
+            vec![HLine {
+                label: &floor_label,
+                y: floor,
+            }]
+        } else {
+            Vec::new()
+        },
         point_labels: labels,
         markers: true,
     };

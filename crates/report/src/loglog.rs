@@ -474,22 +474,55 @@ fn paint<DB: DrawingBackend>(
     }
 
     let offset = px(5.0) as i32;
+    let mut placed: Vec<PixelRect> = Vec::new();
     for (x, y, text) in &plot.point_labels {
-        if drawable(*x) && drawable(*y) {
-            let anchored = note_font.pos(Pos::new(HPos::Left, VPos::Bottom));
-            chart
-                .draw_series(std::iter::once(
-                    EmptyElement::at((*x, *y))
-                        + Text::new(text.clone(), (offset, -offset), anchored),
-                ))
-                .map_err(plot_err)?;
+        if !(drawable(*x) && drawable(*y)) {
+            continue;
         }
+        let (w, h) = root
+            .estimate_text_size(text, &note_font)
+            .map_err(plot_err)?;
+        let (w, h) = (w as i32, h as i32);
+        // In `root`'s own pixels (a panel's area starts below the image's top).
+        let (abs, base) = (chart.backend_coord(&(*x, *y)), root.get_base_pixel());
+        let at = (abs.0 - base.0, abs.1 - base.1);
+        // Above right of the point, else the first free spot of the others around it (or
+        // further up and down), so that labels of neighbouring points stay apart.
+        let spots = [
+            (offset, -offset - h),
+            (offset, offset),
+            (-offset - w, -offset - h),
+            (-offset - w, offset),
+            (offset, -2 * offset - 2 * h),
+            (offset, 2 * offset + h),
+        ];
+        let rect_at = |(dx, dy): (i32, i32)| PixelRect {
+            x0: at.0 + dx,
+            y0: at.1 + dy,
+            x1: at.0 + dx + w,
+            y1: at.1 + dy + h,
+        };
+        let free = |r: &PixelRect| !placed.iter().any(|p| overlap(p, r));
+        let rect = spots
+            .into_iter()
+            .map(rect_at)
+            .find(free)
+            .unwrap_or(rect_at(spots[0]));
+        let anchored = note_font.pos(Pos::new(HPos::Left, VPos::Top));
+        root.draw(&Text::new(text.clone(), (rect.x0, rect.y0), anchored))
+            .map_err(plot_err)?;
+        placed.push(rect);
     }
 
     if let Some(area) = legend_area {
         draw_legend(&area, &legend, plot_area.y0, s, &legend_font, stroke)?;
     }
     Ok(plot_area)
+}
+
+/// Whether two pixel rectangles share a pixel.
+fn overlap(a: &PixelRect, b: &PixelRect) -> bool {
+    a.x0 < b.x1 && b.x0 < a.x1 && a.y0 < b.y1 && b.y0 < a.y1
 }
 
 /// Draws the legend rows in the strip to the right of the chart, starting level with the top of
@@ -853,6 +886,45 @@ mod tests {
             first.y1 < 450,
             "the first panel lies in the upper half: {first:?}"
         );
+    }
+
+    #[test]
+    fn labels_of_neighbouring_points_keep_apart() {
+        use crate::figure::draw_svg;
+        let plot = LogLogPlot {
+            point_labels: vec![
+                (10.0, 1e-7, "first label".to_string()),
+                (10.5, 1.05e-7, "second label".to_string()),
+                (11.0, 1.1e-7, "third label".to_string()),
+            ],
+            ..sali_plot(&XS, &YS)
+        };
+        let svg = draw_svg(&plot, (800, 600)).unwrap();
+        // Each label's text element and its (x, y).
+        let spot = |label: &str| -> (i32, i32) {
+            let start = svg[..svg.find(label).unwrap()].rfind("<text").unwrap();
+            let tag = &svg[start..];
+            let attr = |name: &str| -> i32 {
+                let from = tag.find(&format!(" {name}=\"")).unwrap() + name.len() + 3;
+                tag[from..].split('"').next().unwrap().parse().unwrap()
+            };
+            (attr("x"), attr("y"))
+        };
+        let spots = [
+            spot("first label"),
+            spot("second label"),
+            spot("third label"),
+        ];
+        for (k, a) in spots.iter().enumerate() {
+            for b in &spots[k + 1..] {
+                // Apart by a line of 11-pixel text, or side by side by a label's width (11
+                // characters, 4 pixels each at the least).
+                assert!(
+                    (a.1 - b.1).abs() >= 11 || (a.0 - b.0).abs() >= 44,
+                    "{spots:?}"
+                );
+            }
+        }
     }
 
     #[test]
