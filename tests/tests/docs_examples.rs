@@ -374,13 +374,23 @@ fn the_local_cluster_script_runs_the_quick_example() {
     assert_same_outputs(&dir.path().join("results/1"), &embedded);
 }
 
-/// A Python with numpy and matplotlib: this machine's, or a virtual environment made once in
-/// the target folder from PyPI. `None` (and the test says it was skipped) without Python or
-/// without access to PyPI.
-fn python_with_matplotlib() -> Option<std::path::PathBuf> {
+/// The Python modules the pages' snippets import.
+const PYTHON_MODULES: [&str; 4] = ["numpy", "matplotlib", "xarray", "scipy"];
+
+/// A Python with [`PYTHON_MODULES`]: this machine's, or a virtual environment made once in the
+/// target folder from PyPI. `None` (and the test says it was skipped) without Python or without
+/// access to PyPI.
+fn python_with_modules() -> Option<std::path::PathBuf> {
+    // Once per test binary: two tests making the environment at once would clear each other's.
+    static PYTHON: std::sync::OnceLock<Option<std::path::PathBuf>> = std::sync::OnceLock::new();
+    PYTHON.get_or_init(find_or_make_python).clone()
+}
+
+fn find_or_make_python() -> Option<std::path::PathBuf> {
+    let import = format!("import {}", PYTHON_MODULES.join(", "));
     let has = |python: &Path| {
         Command::new(python)
-            .args(["-c", "import numpy, matplotlib"])
+            .args(["-c", &import])
             .output()
             .is_ok_and(|o| o.status.success())
     };
@@ -397,7 +407,8 @@ fn python_with_matplotlib() -> Option<std::path::PathBuf> {
             .status()
             .is_ok_and(|s| s.success())
             && Command::new(&python)
-                .args(["-m", "pip", "install", "--quiet", "numpy", "matplotlib"])
+                .args(["-m", "pip", "install", "--quiet"])
+                .args(PYTHON_MODULES)
                 .status()
                 .is_ok_and(|s| s.success());
         if !made {
@@ -407,18 +418,22 @@ fn python_with_matplotlib() -> Option<std::path::PathBuf> {
     Some(python)
 }
 
-#[test]
-fn the_python_snippet_of_the_outputs_page_draws_the_map() {
-    let Some(python) = python_with_matplotlib() else {
-        eprintln!("skipped: no python3 with numpy and matplotlib, and none could be installed");
+/// Runs the outputs page's Python snippet that writes `image` on the README's quick run (in
+/// out/quick/ of a fresh folder, where the README's first command writes) and checks the
+/// image. Skipped, and says so, without a Python that has the modules.
+fn run_outputs_snippet(image: &str) {
+    let Some(python) = python_with_modules() else {
+        eprintln!(
+            "skipped: no python3 with {}, and none could be installed",
+            PYTHON_MODULES.join(", ")
+        );
         return;
     };
     let (_, snippet) = fenced_blocks(&read("docs/outputs.md"))
         .into_iter()
-        .find(|(info, _)| info == "python")
-        .expect("the page's Python snippet");
+        .find(|(info, text)| info == "python" && text.contains(image))
+        .unwrap_or_else(|| panic!("a Python snippet of docs/outputs.md writing {image}"));
     let dir = tempfile::tempdir().unwrap();
-    // The snippet reads out/quick/, where the README's first command writes.
     run_embedded(
         &root().join("examples/quick.toml").display().to_string(),
         &dir.path().join("out/quick"),
@@ -435,6 +450,16 @@ fn the_python_snippet_of_the_outputs_page_draws_the_map() {
         "the snippet fails: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let png = std::fs::read(dir.path().join("map_numpy.png")).expect("the snippet's map");
+    let png = std::fs::read(dir.path().join(image)).expect("the snippet's map");
     assert!(png.starts_with(b"\x89PNG") && png.len() > 10_000);
+}
+
+#[test]
+fn the_numpy_snippet_of_the_outputs_page_draws_the_map() {
+    run_outputs_snippet("map_numpy.png");
+}
+
+#[test]
+fn the_xarray_snippet_of_the_outputs_page_reads_results_nc() {
+    run_outputs_snippet("map_xarray.png");
 }

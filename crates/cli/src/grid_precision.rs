@@ -4,7 +4,7 @@
 //! once and kept in a cache folder keyed by everything that sets its classes.
 
 use crate::output::{print_result, write_tables, Staged};
-use crate::run::{run_sweep, thread_count, RunResult, CLASS_CODE_NAMES};
+use crate::run::{mode_name, run_sweep, thread_count, RunResult, CLASS_CODE_NAMES};
 use crate::spec::{self, JobSpec, Mode};
 use crate::usage::{runtime, CliError, CliResult};
 use salient_report::{read_npy_u8, render_loglog, HLine, Line, LogLogPlot, Table};
@@ -477,13 +477,6 @@ fn summary_json(
             })
         }).collect::<Vec<_>>(),
     })
-}
-
-fn mode_name(mode: Mode) -> &'static str {
-    match mode {
-        Mode::FastPss => "fast-pss",
-        Mode::Full => "full",
-    }
 }
 
 fn finite_or_null(x: f64) -> Value {

@@ -7,6 +7,7 @@
 mod client;
 #[cfg(feature = "distributed")]
 mod cluster;
+mod dataset;
 mod grid_precision;
 mod human;
 mod maps;

@@ -495,7 +495,8 @@ pub fn write_run(job: &JobSpec, r: &RunResult, stage: &Path) -> CliResult<()> {
     csv.and(rest)
 }
 
-/// class.npy, sali.npy, the maps ([`crate::maps::write_maps`]) and run.json of one run, in `dir`.
+/// class.npy, sali.npy, the maps ([`crate::maps::write_maps`]), results.nc and run.json of one
+/// run, in `dir`.
 fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<()> {
     let g = &r.grid;
     let class_codes = r.class_codes();
@@ -513,6 +514,7 @@ fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<(
     write_npy_f64(&dir.join("sali.npy"), &shape, &sali)
         .map_err(|e| runtime("writing sali.npy", e))?;
     crate::maps::write_maps(job, r, &sali, dir)?;
+    crate::dataset::write_results_nc(job, r, &job.source, dir)?;
     let mut run = run_json(r);
     run["spec"] = job.source.clone();
     run["versions"] = json!({ "salient": env!("CARGO_PKG_VERSION") });
@@ -528,6 +530,14 @@ fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<(
     )
 }
 
+/// The spec's name of a mode.
+pub fn mode_name(mode: Mode) -> &'static str {
+    match mode {
+        Mode::FastPss => "fast-pss",
+        Mode::Full => "full",
+    }
+}
+
 fn run_json(r: &RunResult) -> Value {
     let c = &r.counts;
     let (reg, st, ch) = c.percent();
@@ -537,7 +547,7 @@ fn run_json(r: &RunResult) -> Value {
         "tau": r.spec.tau,
         "delta": r.spec.delta,
         "t_final": r.spec.t_final,
-        "mode": match r.ledger.mode() { Mode::FastPss => "fast-pss", Mode::Full => "full" },
+        "mode": mode_name(r.ledger.mode()),
         "cells": [r.grid.n_q2, r.grid.n_p2],
         "bounds": { "q2": [r.grid.q2.0, r.grid.q2.1], "p2": [r.grid.p2.0, r.grid.p2.1] },
         "order": r.grid.order.name(),

@@ -11,7 +11,9 @@
 //! * [`render_lines`] draws lines on linear axes (percentages against energy);
 //! * [`render_cell_map`] draws a field of categories over a 2-D grid (the class of each cell
 //!   with a legend, or a quantity in bands with a stepped colour bar), as PNG or SVG from the
-//!   same drawing.
+//!   same drawing;
+//! * [`write_netcdf`] writes gridded results as NetCDF-3 classic, with coordinates and
+//!   attributes.
 //!
 //! Text is set in DejaVu Sans, embedded in the library (`assets/DejaVuSans.ttf`, licence in
 //! `assets/DejaVuSans-LICENSE.txt`), so plots render the same on headless machines without any
@@ -23,6 +25,7 @@ mod error;
 mod figure;
 mod lines;
 mod loglog;
+mod netcdf;
 mod npy;
 mod table;
 
@@ -31,6 +34,7 @@ pub use error::ReportError;
 pub use figure::ImageFormat;
 pub use lines::{render_lines, LinePlot};
 pub use loglog::{render_loglog, render_panels, HLine, Line, LogLogPlot, Panels};
+pub use netcdf::{write_netcdf, AttrValue, Axis, GridFile, GridVar, Values};
 pub use npy::{npy_bytes_f64, read_npy_u8, write_npy_f64, write_npy_u8};
 pub use table::Table;
 pub use table::NOTHING;
