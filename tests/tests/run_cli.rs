@@ -420,6 +420,7 @@ fn an_energy_sweep_runs_each_energy_as_it_runs_alone() {
     let table = std::fs::read_to_string(out.join("table.md")).unwrap();
     assert!(table.starts_with("| H "), "{table}");
     assert!(out.join("percent_vs_energy.png").is_file());
+    assert!(out.join("percent_vs_energy.svg").is_file());
     let dirs = run_dirs(&out);
     assert!(
         dirs[1].ends_with("02-H0.125-tm-sbab2c-tau0.5-t2000"),

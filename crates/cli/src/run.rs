@@ -161,11 +161,14 @@ pub fn write_sweep(
                 &stage.join("table.json"),
                 &(serde_json::to_string_pretty(&summary).expect("JSON") + "\n"),
             )?;
-            if results.iter().any(|r| !r.checkpoints.is_empty()) {
-                plot_percent_vs_t(results, &stage.join("percent_vs_t.png"))?;
-            }
-            if results.iter().any(|r| r.energy_swept) {
-                plot_percent_vs_energy(results, &stage.join("percent_vs_energy.png"))?;
+            for ext in ["png", "svg"] {
+                if results.iter().any(|r| !r.checkpoints.is_empty()) {
+                    plot_percent_vs_t(results, &stage.join(format!("percent_vs_t.{ext}")))?;
+                }
+                if results.iter().any(|r| r.energy_swept) {
+                    let path = stage.join(format!("percent_vs_energy.{ext}"));
+                    plot_percent_vs_energy(results, &path)?;
+                }
             }
             staged.publish()?;
             Some(out)
@@ -225,20 +228,35 @@ fn run_one(
     let cpu0 = process_cpu_seconds();
     let start = Instant::now();
     let mut last_log = Instant::now();
+    let mut last_bar: Option<Instant> = None;
     let hint = forecast.as_ref().map(|(f, _)| f);
     let ledger = run_embedded_forecast(&grid, &cell_run, mode, window, hint, |l| {
         let resolved = l.resolved() as u64;
         let orbits = l.committed.len();
-        let rate = orbits as f64 / start.elapsed().as_secs_f64().max(1e-9);
+        let elapsed = start.elapsed().as_secs_f64();
+        let rate = orbits as f64 / elapsed.max(1e-9);
         if let Some(b) = &bar {
             b.set_position(resolved);
-            b.set_message(format!(
-                "{orbits} orbits, {rate:.0}/s, {} dropped",
-                l.dropped
-            ));
+            // The running percentages read every labelled cell: once a second at most.
+            if last_bar.is_none_or(|t| t.elapsed() >= Duration::from_secs(1)) {
+                last_bar = Some(Instant::now());
+                let (reg, st, ch) = running_percent(&grid, l);
+                b.set_message(format!(
+                    "{orbits} orbits, {rate:.0}/s, {} dropped; so far {reg:.1} / {st:.1} / {ch:.1} % r/s/c",
+                    l.dropped
+                ));
+            }
         } else if last_log.elapsed() >= Duration::from_secs(5) {
             last_log = Instant::now();
-            tracing::info!(run = %label, resolved, compatible, orbits, orbits_per_s = rounded(rate, 0), dropped = l.dropped, "progress");
+            // Cells still to resolve at the rate so far: optimistic in fast PSS, where the
+            // chaotic sea resolves early and the last cells wait on long regular orbits.
+            let eta_s = elapsed * (compatible - resolved) as f64 / resolved.max(1) as f64;
+            let (reg, st, ch) = running_percent(&grid, l);
+            tracing::info!(
+                run = %label, resolved, compatible, orbits, orbits_per_s = rounded(rate, 0),
+                dropped = l.dropped, eta_s = rounded(eta_s, 0), regular = rounded(reg, 2),
+                sticky = rounded(st, 2), chaotic = rounded(ch, 2), "progress"
+            );
         }
     });
     if let Some(b) = bar {
@@ -250,6 +268,25 @@ fn run_one(
     let mut result = RunResult::new(job, index, grid, ledger, cpu_s, wall_s, out);
     result.forecast_from = forecast.map(|(_, name)| name);
     Ok(result)
+}
+
+/// Percentages of regular, sticky and chaotic cells among the cells labelled so far.
+fn running_percent(grid: &Grid, ledger: &Ledger) -> (f64, f64, f64) {
+    let mut counts = [0u64; 3];
+    let mut labelled = 0u64;
+    for cell in (0..grid.cells() as u32).filter(|&c| grid.is_compatible(c)) {
+        if let Some(l) = ledger.label(cell) {
+            labelled += 1;
+            match l.class {
+                Some(Class::Regular) => counts[0] += 1,
+                Some(Class::Sticky) => counts[1] += 1,
+                Some(Class::Chaotic) => counts[2] += 1,
+                None => {}
+            }
+        }
+    }
+    let pct = |n: u64| 100.0 * n as f64 / labelled.max(1) as f64;
+    (pct(counts[0]), pct(counts[1]), pct(counts[2]))
 }
 
 /// The codes of class.npy: what each [`RunResult::class_codes`] value means.
@@ -755,7 +792,8 @@ fn plot_percent_vs_t(results: &[RunResult], path: &Path) -> CliResult<()> {
         y_range: Some((0.0, 100.0)),
         dots: false,
     };
-    render_lines(&plot, path, 1200, 800).map_err(|e| runtime("plotting percent_vs_t.png", e))
+    render_lines(&plot, path, 1200, 800)
+        .map_err(|e| runtime(&format!("plotting {}", path.display()), e))
 }
 
 #[cfg(test)]
