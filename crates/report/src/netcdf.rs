@@ -2,7 +2,10 @@
 //! variable per quantity on them, attributes that say what each one is. `xarray.open_dataset`
 //! reads them with their coordinates.
 
+use std::cell::RefCell;
+use std::io::{Seek, SeekFrom, Write};
 use std::path::Path;
+use std::rc::Rc;
 
 use netcdf3::{DataSet, FileWriter, InvalidDataSet, Version, WriteError};
 
@@ -153,11 +156,13 @@ fn definition(file: &GridFile) -> Result<DataSet, ReportError> {
 /// Writes `file` at `path` as NetCDF-3 classic (64-bit offsets not needed below 2 GiB).
 pub fn write_netcdf(file: &GridFile, path: &Path) -> Result<(), ReportError> {
     let ds = definition(file)?;
-    // `create_new` refuses an existing file: writing again replaces it.
-    if path.exists() {
-        std::fs::remove_file(path)?;
-    }
-    let mut writer = FileWriter::create_new(path).map_err(write_err)?;
+    let failed = Rc::new(RefCell::new(None));
+    let out = FlushOnDrop {
+        out: std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(path)?),
+        failed: Rc::clone(&failed),
+    };
+    let mut writer =
+        FileWriter::open_seek_write(&path.to_string_lossy(), Box::new(out)).map_err(write_err)?;
     writer
         .set_def(&ds, Version::Classic, 0)
         .map_err(write_err)?;
@@ -174,7 +179,41 @@ pub fn write_netcdf(file: &GridFile, path: &Path) -> Result<(), ReportError> {
         }
         .map_err(write_err)?;
     }
-    writer.close().map_err(write_err)
+    writer.close().map_err(write_err)?;
+    // Closed and dropped: the buffer's last flush has happened.
+    let flushed = failed.borrow_mut().take();
+    flushed.map_or(Ok(()), |e| Err(ReportError::Io(e)))
+}
+
+/// The file buffered (`netcdf3` writes every value on its own: a system call each, a second
+/// for a 400×400 grid, unbuffered), flushed when the writer drops it, which `FileWriter::close`
+/// does without flushing; a failure of that flush is kept for the caller.
+struct FlushOnDrop {
+    out: std::io::BufWriter<std::fs::File>,
+    failed: Rc<RefCell<Option<std::io::Error>>>,
+}
+
+impl Write for FlushOnDrop {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.out.write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.out.flush()
+    }
+}
+
+impl Seek for FlushOnDrop {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.out.seek(pos)
+    }
+}
+
+impl Drop for FlushOnDrop {
+    fn drop(&mut self) {
+        if let Err(e) = self.out.flush() {
+            *self.failed.borrow_mut() = Some(e);
+        }
+    }
 }
 
 #[cfg(test)]
