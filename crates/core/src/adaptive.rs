@@ -422,17 +422,19 @@ impl Tally {
             Some(e) if checks.screen && e < 0.5 * drift => e,
             _ => energy_error(),
         };
+        self.energy_max = self.energy_max.max(e);
         if r2 > checks.r2_max {
-            // Left the well by gaining energy: the integration blew up, nothing escaped.
+            // Above the escape energy a drift past the limit inside the well stopped the orbit
+            // there, and one beyond it is the orbit's way out (its error is in `energy_max`);
+            // below it, an orbit that gained that much energy blew up, nothing escaped.
             #[allow(clippy::neg_cmp_op_on_partial_ord)]
-            return Some(if !(e <= drift) {
+            return Some(if checks.well_r2.is_infinite() && !(e <= drift) {
                 Status::EnergyDrift
             } else {
                 Status::Escaped
             });
         }
-        self.energy_max = self.energy_max.max(e);
-        if e > drift {
+        if e > drift && r2 <= checks.well_r2 {
             return Some(Status::EnergyDrift);
         }
         None
@@ -443,6 +445,8 @@ impl Tally {
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct EndChecks {
     r2_max: f64,
+    /// [`Hamiltonian::way_out_r2`]: beyond it a drift past the limit does not stop the orbit.
+    well_r2: f64,
     drift: f64,
     /// Whether an energy estimate may stand in for the exact error: only when the maximum is
     /// not reported, and against a threshold far above the estimate's rounding.
@@ -790,6 +794,7 @@ where
         requests,
         checks: EndChecks {
             r2_max: radius * radius,
+            well_r2: ham.way_out_r2(ham.energy(&y0.q, &y0.p), radius),
             drift,
             screen: !requests.energy && drift >= 1e-10,
         },

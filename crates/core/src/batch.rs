@@ -622,6 +622,7 @@ fn feed_loop<
     let screen_rules = ScreenRules {
         n_final,
         r2_max: escape_radius2(ham, config),
+        well_r2: ham.well_radius() * ham.well_radius(),
         factor: alignment_factor(chaotic),
         crossings: requests.crossings,
         early: config.thresholds.early_stop,
@@ -896,6 +897,9 @@ impl QuietRules {
 struct ScreenRules {
     n_final: u64,
     r2_max: f64,
+    /// Squared well radius: a lane beyond it goes to the tracker at every step (its energy is
+    /// checked there at every step).
+    well_r2: f64,
     factor: f64,
     crossings: bool,
     early: bool,
@@ -972,7 +976,7 @@ fn screen<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
         };
         // The `not_*` compares are true for NaN too, which is the point.
         let outside = r2.not_le_bits(Lanes::splat(r2_max));
-        let mut f = hard | outside;
+        let mut f = hard | outside | r2.not_le_bits(Lanes::splat(rules.well_r2));
         let active = lane_bits::<L>(|l| st.active[l]);
         if energy_due & active != 0 {
             let dh = ham.energy(&x.q, &x.p) - st.h0;
@@ -1038,7 +1042,7 @@ fn screen<H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>(
     for l in 0..L {
         let mut f = energy_due[l] & !(dh.0[l].abs() <= st.drift_screen.0[l]);
         f |= hard[l];
-        f |= !(r2.0[l] <= rules.r2_max);
+        f |= !(r2.0[l] <= rules.r2_max) | !(r2.0[l] <= rules.well_r2);
         for n2k in &n2 {
             f |= !in_band(n2k.0[l]);
         }

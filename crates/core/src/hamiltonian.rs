@@ -103,9 +103,30 @@ pub trait Hamiltonian<const N: usize>: Send + Sync {
         f64::INFINITY
     }
 
+    /// Distance from the origin within which an orbit is inside the potential well: an energy
+    /// error past the limit there is the integration's fault (`energy-drift`); beyond it, on
+    /// the way out through a channel, the orbit goes on until it escapes or comes back.
+    /// Infinite when every energy surface is bounded.
+    fn well_radius(&self) -> f64 {
+        f64::INFINITY
+    }
+
     /// The energy above which orbits can leave the potential well, if there is one.
     fn escape_energy(&self) -> Option<f64> {
         None
+    }
+
+    /// The squared radius beyond which an orbit of energy `h0` is on its way out of the well
+    /// ([`Hamiltonian::well_radius`]), with `escape_radius` the radius at which it counts as
+    /// escaped: infinite (never) below the escape energy, where only a blown-up integration
+    /// leaves the well, and when no escape radius is set.
+    fn way_out_r2(&self, h0: f64, escape_radius: f64) -> f64 {
+        let can_escape = self.escape_energy().is_some_and(|e| h0 > e) && escape_radius.is_finite();
+        if can_escape {
+            self.well_radius() * self.well_radius()
+        } else {
+            f64::INFINITY
+        }
     }
 
     /// Upper bounds of V's derivatives and the corrector's over the ball |q| ≤ r, or `None`
@@ -272,6 +293,11 @@ impl Hamiltonian<2> for HenonHeiles {
                 matrix: [[T::splat(0.0); 2]; 2],
             },
         }
+    }
+
+    fn well_radius(&self) -> f64 {
+        // The saddles sit at distance 1 and the well's triangle lies within that circle.
+        1.0
     }
 
     fn escape_radius(&self) -> f64 {

@@ -341,6 +341,9 @@ pub(crate) struct Tracker<'h, H, const K: usize> {
     tau: f64,
     pub(crate) n_final: u64,
     pub(crate) r2_max: f64,
+    /// [`Hamiltonian::way_out_r2`]: beyond it the energy is checked at every step and a drift
+    /// past the limit does not stop the orbit.
+    pub(crate) well_r2: f64,
     pub(crate) thresholds: Thresholds,
     pub(crate) requests: Requests,
     h0: f64,
@@ -372,6 +375,7 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
             tau,
             n_final,
             r2_max: escape_radius2(ham, config),
+            well_r2: ham.way_out_r2(h0, escape_radius2(ham, config).sqrt()),
             thresholds: config.thresholds,
             requests: *requests,
             h0,
@@ -414,10 +418,14 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
         let r2 = dot(&x.q, &x.q);
         #[allow(clippy::neg_cmp_op_on_partial_ord)]
         if !(r2 <= self.r2_max) {
+            let e = self.energy_error(x);
+            self.energy_max = self.energy_max.max(e);
+            // Above the escape energy a drift past the limit inside the well stopped the orbit
+            // there, and one beyond it is the orbit's way out (its error is in `energy_max`);
+            // below it, an orbit that gained that much energy blew up, nothing escaped.
             self.status = if !r2.is_finite() {
                 Status::NonFinite
-            } else if !(self.energy_error(x) <= self.thresholds.energy_drift) {
-                // Left the well by gaining energy: the integration blew up, nothing escaped.
+            } else if self.well_r2.is_infinite() && !(e <= self.thresholds.energy_drift) {
                 Status::EnergyDrift
             } else {
                 Status::Escaped
@@ -457,11 +465,16 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
             }
         }
         let th = self.thresholds;
-        if self.requests.energy || n.is_multiple_of(ENERGY_CHECK_EVERY) || n == self.n_final {
+        let in_well = r2 <= self.well_r2;
+        if self.requests.energy
+            || n.is_multiple_of(ENERGY_CHECK_EVERY)
+            || n == self.n_final
+            || !in_well
+        {
             let e = self.energy_error(x);
             self.energy_max = self.energy_max.max(e);
             #[allow(clippy::neg_cmp_op_on_partial_ord)]
-            if !(e <= th.energy_drift) {
+            if e.is_nan() || (!(e <= th.energy_drift) && in_well) {
                 self.status = if e.is_nan() {
                     Status::NonFinite
                 } else {

@@ -245,6 +245,37 @@ fn escaping_and_exploding_orbits_get_a_status_not_a_class() {
     assert!(res.sali.is_nan() && res.class.is_none() && res.t_reached < 1e4);
 }
 
+/// Above the escape energy an orbit on its way out through a channel escapes, also when a
+/// coarse step lets its energy error pass the limit there (beyond the well): the error is
+/// reported, the status is `escaped` at the escape time of a fine step, give or take a step.
+#[test]
+fn an_orbit_leaving_the_well_escapes_whatever_its_energy_error_outside() {
+    let ham = HenonHeiles;
+    let (q, p) = salient_core::section::on_section(&ham, 0.2, &[-0.5292], &[-0.137]).unwrap();
+    let req = Requests {
+        energy: true,
+        ..Requests::default()
+    };
+    let run = |tau: f64| {
+        let map = TangentMap::new(&ham, &sbab2c(), tau);
+        integrate::<_, 2, 2>(&map, q, p, &OrbitConfig::new(tau, 100.0), &req)
+    };
+    let (fine, coarse) = (run(0.05), run(0.5));
+    assert_eq!(fine.status, Status::Escaped);
+    assert!(fine.energy_error_max.unwrap() < 1e-4);
+    assert_eq!(coarse.status, Status::Escaped);
+    assert!(
+        coarse.energy_error_max.unwrap() > 1e-2,
+        "the error past the limit is shown"
+    );
+    assert!((coarse.t_reached - fine.t_reached).abs() <= 0.5);
+    // Below the escape energy the same coarse step blowing R1 up out of the well is not an
+    // escape (the splitting-stability test below).
+    assert!(ham.way_out_r2(ENERGY, 2.0).is_infinite());
+    assert_eq!(ham.way_out_r2(0.2, 2.0), 1.0);
+    assert!(ham.way_out_r2(0.2, f64::INFINITY).is_infinite());
+}
+
 #[test]
 fn a_splitting_step_beyond_its_stability_limit_ends_in_energy_drift() {
     let ham = HenonHeiles;
