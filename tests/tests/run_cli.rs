@@ -437,3 +437,47 @@ fn an_energy_sweep_runs_each_energy_as_it_runs_alone() {
         );
     }
 }
+
+/// `sweep.mode` runs full mode and fast PSS from one spec (the paper's Fig. 7 in one
+/// command): each mode's run is the run of that mode alone, byte for byte, the folders and
+/// the table name the mode, and percent_vs_t draws both.
+#[test]
+fn a_mode_sweep_runs_each_mode_as_it_runs_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let swept = SMALL
+        .replace("mode = \"fast-pss\"\n", "")
+        .replace("[sweep]", "[sweep]\nmode = [\"full\", \"fast-pss\"]");
+    let out = dir.path().join("swept");
+    let v = run_json(&write_spec(dir.path(), "swept.toml", &swept), "2", &out);
+    let runs = v["runs"].as_array().unwrap();
+    let modes: Vec<&str> = runs.iter().map(|r| r["mode"].as_str().unwrap()).collect();
+    assert_eq!(modes, ["full", "fast-pss"]);
+    let table = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(table.starts_with("| mode "), "{table}");
+    assert!(out.join("percent_vs_t.png").is_file());
+    let dirs = run_dirs(&out);
+    assert!(
+        dirs[0].ends_with("01-full-tm-sbab2c-tau0.5-t2000"),
+        "{dirs:?}"
+    );
+    assert!(
+        dirs[1].ends_with("02-fast-pss-tm-sbab2c-tau0.5-t2000"),
+        "{dirs:?}"
+    );
+    for (k, mode) in ["full", "fast-pss"].iter().enumerate() {
+        let alone = dir.path().join(mode);
+        let text = SMALL.replace("mode = \"fast-pss\"", &format!("mode = \"{mode}\""));
+        run_json(
+            &write_spec(dir.path(), &format!("{mode}.toml"), &text),
+            "1",
+            &alone,
+        );
+        for file in ["cells.csv", "class.npy", "sali.npy"] {
+            assert_eq!(
+                std::fs::read(dirs[k].join(file)).unwrap(),
+                std::fs::read(run_dirs(&alone)[0].join(file)).unwrap(),
+                "{mode}: {file}"
+            );
+        }
+    }
+}

@@ -99,6 +99,18 @@ fn simulate_writes_its_table_and_plot_and_refuses_bad_flags() {
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(err.contains(flag), "{flag}: {err}");
     }
+    // One mode at a time, as one energy at a time.
+    let text = SPEC
+        .replace("160", "40")
+        .replace("[sweep]", "[sweep]\nmode = [\"full\", \"fast-pss\"]");
+    let swept = write_spec(
+        dir.path(),
+        "modes.toml",
+        &text.replace("mode = \"fast-pss\"\n", ""),
+    );
+    let o = salient(&["simulate", &swept]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("sweep.mode"));
 }
 
 /// Wall seconds and integrated steps of `runs` jobs of `spec` on a cluster of `workers`

@@ -559,7 +559,8 @@ async fn fetch_and_write(
                 }
                 let checkpoints = s.cell_run(h.run as usize).checkpoint_steps().len();
                 let grid = s.grid(h.run as usize);
-                runs.push((h, Ledger::new(&grid, s.grid.mode), checkpoints, grid));
+                let mode = s.mode(h.run as usize);
+                runs.push((h, Ledger::new(&grid, mode), checkpoints, grid));
             }
             Some(Part::Outcomes(batch)) => {
                 let (_, ledger, checkpoints, grid) = runs

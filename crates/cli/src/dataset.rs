@@ -110,7 +110,7 @@ pub fn write_results_nc(job: &JobSpec, r: &RunResult, source: &Value, dir: &Path
         ("method", text(&s.method.name())),
         ("tau", AttrValue::F64(s.tau)),
         ("t_final", AttrValue::F64(s.t_final)),
-        ("mode", text(crate::run::mode_name(job.grid.mode))),
+        ("mode", text(crate::run::mode_name(s.mode))),
         ("order", text(g.order.name())),
         ("regular_threshold", AttrValue::F64(th.regular)),
         ("chaotic_threshold", AttrValue::F64(th.chaotic)),

@@ -273,6 +273,13 @@ struct Row {
 
 pub fn run(req: GridRequest) -> CliResult<()> {
     let job = spec::load(&req.spec, spec::MAX_CELLS)?;
+    if job.sweeps_mode() {
+        return Err(CliError::Usage(
+            "--grid: sweep.mode lists both modes; compare one mode at a time (--fast-vs-full \
+             sets fast PSS beside full mode)"
+                .into(),
+        ));
+    }
     let threads = thread_count(req.threads)?;
     let shape = [job.grid.n_q2, job.grid.n_p2];
     let given = req
@@ -347,7 +354,7 @@ fn compare_all(
                     references[reference].dir.display()
                 ))
             })?;
-        let fast_vs_full = if fast_vs_full && job.grid.mode == Mode::FastPss {
+        let fast_vs_full = if fast_vs_full && job.mode(index) == Mode::FastPss {
             let full = cached_run(&full_mode_spec(job, index)?, cache, threads)?;
             Some(Comparison::of(&codes, &full.codes).map_err(CliError::Runtime)?)
         } else {
@@ -459,7 +466,7 @@ fn summary_json(
 ) -> Value {
     json!({
         "spec": job.name,
-        "mode": mode_name(job.grid.mode),
+        "mode": mode_name(job.mode(0)),
         "references": references.iter().map(|r| json!({
             "origin": r.origin, "folder": r.dir.display().to_string(),
             "cpu_s": finite_or_null(r.cpu_s), "wall_s": finite_or_null(r.wall_s),
@@ -539,7 +546,7 @@ fn plot_misclassified(
     let title = format!(
         "cells misclassified, {} ({})",
         job.name,
-        mode_name(job.grid.mode)
+        mode_name(job.mode(0))
     );
     let plot = LogLogPlot {
         title: &title,
@@ -614,7 +621,7 @@ mod tests {
         assert_eq!(cache_key(&spec("a", 100.0)), cache_key(&spec("b", 100.0)));
         assert_ne!(cache_key(&spec("a", 100.0)), cache_key(&spec("a", 200.0)));
         let reference = reference_spec(&spec("a", 100.0), 0.125, 100.0, 0.5).unwrap();
-        assert_eq!(reference.grid.mode, Mode::Full);
+        assert_eq!(reference.mode(0), Mode::Full);
         assert_eq!(reference.runs.len(), 1);
         assert_eq!(reference.runs[0].delta, Some(REFERENCE_DELTA));
     }

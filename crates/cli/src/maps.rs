@@ -48,7 +48,7 @@ pub fn figure_title(job: &JobSpec, r: &RunResult) -> String {
         ),
         None => format!("{}, τ = {}", s.method.name(), s.tau),
     };
-    let mode = match job.grid.mode {
+    let mode = match r.spec().mode {
         Mode::FastPss => "fast PSS",
         Mode::Full => "every cell integrated",
     };

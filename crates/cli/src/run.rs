@@ -53,18 +53,24 @@ pub struct RunResult {
     forecast_from: Option<String>,
     /// Whether the sweep covers several energies (the folder's name then says which).
     energy_swept: bool,
+    /// Whether the sweep runs both modes (the folder's name then says which).
+    mode_swept: bool,
 }
 
-/// `01-tm-sbab2c-tau0.5-t10000`, with `-delta1e-8` for adaptive methods and `H0.125-` after
-/// the number when the sweep covers several energies.
-fn run_dir_name(index: usize, r: &RunSpec, with_energy: bool) -> String {
-    let energy = if with_energy {
+/// `01-tm-sbab2c-tau0.5-t10000`, with `-delta1e-8` for adaptive methods, and after the number
+/// `H0.125-` when the sweep covers several energies and `full-`/`fast-pss-` when it runs both
+/// modes.
+fn run_dir_name(index: usize, r: &RunSpec, (with_energy, with_mode): (bool, bool)) -> String {
+    let mut prefix = if with_energy {
         format!("H{}-", r.energy)
     } else {
         String::new()
     };
+    if with_mode {
+        let _ = write!(prefix, "{}-", mode_name(r.mode));
+    }
     let mut s = format!(
-        "{:02}-{energy}{}-tau{}-t{}",
+        "{:02}-{prefix}{}-tau{}-t{}",
         index + 1,
         r.method.name(),
         r.tau,
@@ -117,13 +123,16 @@ pub fn run_sweep(
     }
     let mut results: Vec<RunResult> = Vec::new();
     for (index, r) in job.runs.iter().enumerate() {
-        // The last finished run of the sweep with the same τ and t_final (another method, or
-        // another δ) forecasts who labels which cell: a scheduling hint that leaves the
-        // labels unchanged.
-        let similar = takes_forecast(&job.cell_run(index), job.grid.mode)
+        // The last finished run of the sweep with the same τ, t_final, energy and mode
+        // (another method, or another δ) forecasts who labels which cell: a scheduling hint
+        // that leaves the labels unchanged.
+        let similar = takes_forecast(&job.cell_run(index), r.mode)
             .then(|| {
                 results.iter().rev().find(|p| {
-                    p.spec.tau == r.tau && p.spec.t_final == r.t_final && p.spec.energy == r.energy
+                    p.spec.tau == r.tau
+                        && p.spec.t_final == r.t_final
+                        && p.spec.energy == r.energy
+                        && p.spec.mode == r.mode
                 })
             })
             .flatten();
@@ -199,7 +208,7 @@ fn run_one(
     forecast: Option<(Forecast, String)>,
 ) -> CliResult<RunResult> {
     let grid = job.grid(index);
-    let mode = job.grid.mode;
+    let mode = job.mode(index);
     let cell_run = job.cell_run(index);
     // Fast PSS speculates at most one batch per thread ahead of the ledger; full mode never
     // drops work, so it takes large windows.
@@ -211,7 +220,7 @@ fn run_one(
         "[{}/{}] {}",
         index + 1,
         job.runs.len(),
-        run_dir_name(index, r, job.sweeps_energy())
+        run_dir_name(index, r, (job.sweeps_energy(), job.sweeps_mode()))
     );
     let compatible = grid.compatible_count() as u64;
     let bar = std::io::stderr().is_terminal().then(|| {
@@ -363,9 +372,14 @@ impl RunResult {
         RunResult {
             counts: Counts::of(&grid, &ledger),
             checkpoints: checkpoint_percentages(&grid, &ledger, &job.cell_run(index)),
-            dir: out.join(run_dir_name(index, spec, job.sweeps_energy())),
+            dir: out.join(run_dir_name(
+                index,
+                spec,
+                (job.sweeps_energy(), job.sweeps_mode()),
+            )),
             forecast_from: None,
             energy_swept: job.sweeps_energy(),
+            mode_swept: job.sweeps_mode(),
             spec: spec.clone(),
             grid,
             ledger,
@@ -617,7 +631,11 @@ fn sweep_table(results: &[RunResult]) -> Table {
         .map(|s| format!("% {}", s.as_str()))
         .collect();
     let energy_swept = results.iter().any(|r| r.energy_swept);
+    let mode_swept = results.iter().any(|r| r.mode_swept);
     let mut headers = if energy_swept { vec!["H"] } else { Vec::new() };
+    if mode_swept {
+        headers.push("mode");
+    }
     headers.extend([
         "tau",
         "t_final",
@@ -638,6 +656,9 @@ fn sweep_table(results: &[RunResult]) -> Table {
         } else {
             Vec::new()
         };
+        if mode_swept {
+            row.push(mode_name(r.spec.mode).to_string());
+        }
         row.extend([
             format!("{}", r.spec.tau),
             format!("{:e}", r.spec.t_final),

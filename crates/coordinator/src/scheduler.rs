@@ -42,7 +42,7 @@ const WINDOW_CELLS_MIN: usize = 25_600;
 /// trips).
 pub fn lease_grid(spec: &JobSpec, index: usize) -> Grid {
     let grid = spec.grid(index);
-    match spec.grid.mode {
+    match spec.mode(index) {
         salient_grid::Mode::FastPss => grid.retiled(FAST_PSS_LEASE_CELLS),
         salient_grid::Mode::Full => grid,
     }
@@ -259,7 +259,8 @@ struct Replies {
 }
 
 /// Fast PSS: gives the labellers of finished run `from` as a forecast ([`Run::forecast`]) to
-/// the unfinished runs of the job it resembles, at the same energy (the same grid): the same τ
+/// the unfinished runs of the job it resembles, at the same energy (the same grid) and in the
+/// same mode (a full-mode run labels every cell itself): the same τ
 /// and t_final (another method or δ,
 /// as `salient run` does in a sweep: integrators that agree on the orbits agree on the
 /// labellers), or the same method and τ to a longer t_final (the same orbits, longer: each
@@ -270,6 +271,7 @@ fn hand_forecast(spec: &JobSpec, runs: &mut [Run], from: usize) {
     let source = &spec.runs[from];
     let resembles = |target: &spec::RunSpec| {
         source.energy == target.energy
+            && source.mode == target.mode
             && source.tau == target.tau
             && (source.t_final == target.t_final
                 || (source.method == target.method
@@ -282,7 +284,7 @@ fn hand_forecast(spec: &JobSpec, runs: &mut [Run], from: usize) {
                 && !runs[r].done
                 && (runs[r].forecast.is_none() || runs[r].forecast_from.is_some())
                 && resembles(&spec.runs[r])
-                && takes_forecast(&spec.cell_run(r), spec.grid.mode)
+                && takes_forecast(&spec.cell_run(r), spec.mode(r))
         })
         .collect();
     if takers.is_empty() {
@@ -334,8 +336,8 @@ impl Run {
     fn new(spec: &JobSpec, index: usize) -> Run {
         let grid = lease_grid(spec, index);
         let cell_run = spec.cell_run(index);
-        let mut ledger = Ledger::new(&grid, spec.grid.mode);
-        if spec.grid.mode == salient_grid::Mode::FastPss {
+        let mut ledger = Ledger::new(&grid, spec.mode(index));
+        if spec.mode(index) == salient_grid::Mode::FastPss {
             ledger.watch_outcomes();
         }
         Run {
@@ -1291,7 +1293,7 @@ impl Scheduler {
     /// slot takes one tile).
     fn batch_cells(&self, key: TileKey, threads: usize) -> Option<usize> {
         let job = &self.jobs[&key.0];
-        if job.spec.grid.mode != salient_grid::Mode::FastPss {
+        if job.spec.mode(key.1 as usize) != salient_grid::Mode::FastPss {
             return None;
         }
         let mut per_thread = self.cfg.lease_cells_per_thread;
@@ -1342,7 +1344,8 @@ impl Scheduler {
                     cells.truncate(left);
                     let left = left - cells.len();
                     slot = Some((first, span, left));
-                    let full = self.jobs[&key.0].spec.grid.mode == salient_grid::Mode::Full;
+                    let full =
+                        self.jobs[&key.0].spec.mode(key.1 as usize) == salient_grid::Mode::Full;
                     leases.push(self.lease(worker, key, cells)?);
                     if full || left == 0 || leases.len() >= MAX_POLL_LEASES {
                         break;

@@ -50,7 +50,10 @@ fn labels(s: &Scheduler, job: u64) -> Vec<Vec<Option<Label>>> {
             Part::Header(h) => spec = Some(spec::parse(&h.spec_json, true).unwrap()),
             Part::Run(h) => {
                 let sp = spec.as_ref().unwrap();
-                ledgers.push(Ledger::new(&sp.grid(h.run as usize), sp.grid.mode));
+                ledgers.push(Ledger::new(
+                    &sp.grid(h.run as usize),
+                    sp.mode(h.run as usize),
+                ));
             }
             Part::Outcomes(b) => {
                 let sp = spec.as_ref().unwrap();
@@ -77,7 +80,7 @@ fn embedded(json: &str) -> Vec<Vec<Option<Label>>> {
     let grid = spec.grid(0);
     (0..spec.runs.len())
         .map(|i| {
-            let l = run_embedded(&grid, &spec.cell_run(i), spec.grid.mode, 8, |_| {});
+            let l = run_embedded(&grid, &spec.cell_run(i), spec.mode(i), 8, |_| {});
             (0..grid.cells() as u32).map(|c| l.label(c)).collect()
         })
         .collect()
@@ -96,7 +99,7 @@ fn work(lease: &v1::Lease, skip: &HashSet<u32>) -> v1::TileReport {
     let outcomes = integrate_cells(
         &spec.grid(0),
         &spec.cell_run(tile.run as usize),
-        spec.grid.mode,
+        spec.mode(tile.run as usize),
         &cells,
     );
     v1::TileReport {
@@ -187,12 +190,12 @@ fn a_forecast_leases_only_the_cells_that_need_their_own_orbit() {
     let json = spec_json("fast-pss", r#""tm-sbab2c""#);
     let spec = spec::parse(&json, true).unwrap();
     let grid = spec.grid(0);
-    let finished = run_embedded(&grid, &spec.cell_run(0), spec.grid.mode, 8, |_| {});
+    let finished = run_embedded(&grid, &spec.cell_run(0), spec.mode(0), 8, |_| {});
     let mut s = Scheduler::new(Store::open_in_memory().unwrap(), config()).unwrap();
     let (job, _) = s.submit(&json).unwrap();
     s.set_forecast(job, 0, finished.forecast()).unwrap();
     let other = spec::parse(&json.replace("[14, 12]", "[10, 10]"), true).unwrap();
-    let small = Ledger::new(&other.grid(0), other.grid.mode).forecast();
+    let small = Ledger::new(&other.grid(0), other.mode(0)).forecast();
     assert_eq!(
         s.set_forecast(job, 0, small).unwrap_err().code(),
         Code::InvalidArgument
@@ -437,7 +440,7 @@ fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     // The cells whose outcomes come to count, in the order they do, as a ledger of the run
     // tells them.
     let sp = spec::parse(&json, true).unwrap();
-    let mut mirror = Ledger::new(&sp.grid(0), sp.grid.mode);
+    let mut mirror = Ledger::new(&sp.grid(0), sp.mode(0));
     mirror.watch_outcomes();
     let mut counting = |outcomes: &[v1::Outcome]| -> Vec<u32> {
         let k = sp.cell_run(0).checkpoint_steps().len();

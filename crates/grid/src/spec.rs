@@ -43,7 +43,10 @@ pub const SCHEMA: &[(&str, &[&str])] = &[
         "grid",
         &["cells", "tile", "mode", "q2", "p2", "order", "order_seed"],
     ),
-    ("sweep", &["method", "tau", "t_final", "delta", "energy"]),
+    (
+        "sweep",
+        &["method", "tau", "t_final", "delta", "energy", "mode"],
+    ),
     ("integration", &["protocol", "deviation", "seed"]),
     (
         "classify",
@@ -67,7 +70,6 @@ pub struct GridSpec {
     pub n_p2: usize,
     pub tile_q2: usize,
     pub tile_p2: usize,
-    pub mode: Mode,
     /// The bounds the spec gives, or `None`: the allowed region at each run's energy
     /// ([`default_bounds`]).
     pub q2_range: Option<(f64, f64)>,
@@ -82,6 +84,8 @@ pub struct GridSpec {
 pub struct RunSpec {
     /// The energy H of the run's section (`system.energy`, or one of `sweep.energy`).
     pub energy: f64,
+    /// Fast PSS or every cell integrated (`grid.mode`, or one of `sweep.mode`).
+    pub mode: Mode,
     pub method: Method,
     pub tau: f64,
     pub t_final: f64,
@@ -130,6 +134,16 @@ impl JobSpec {
         self.runs.windows(2).any(|w| w[0].energy != w[1].energy)
     }
 
+    /// Run `index`'s mode.
+    pub fn mode(&self, index: usize) -> Mode {
+        self.runs[index].mode
+    }
+
+    /// Whether the sweep runs both modes (run folders and tables then name the mode).
+    pub fn sweeps_mode(&self) -> bool {
+        self.runs.windows(2).any(|w| w[0].mode != w[1].mode)
+    }
+
     /// How every cell's orbit of run `index` is integrated.
     pub fn cell_run(&self, index: usize) -> CellRun {
         let r = &self.runs[index];
@@ -146,7 +160,7 @@ impl JobSpec {
                 deviation: self.deviation,
                 escape_radius: None,
             },
-            checkpoints_per_decade: match self.grid.mode {
+            checkpoints_per_decade: match r.mode {
                 Mode::Full => CHECKPOINTS_PER_DECADE,
                 Mode::FastPss => 0,
             },
@@ -189,6 +203,7 @@ struct RawSweep {
     t_final: Vec<f64>,
     delta: Option<Vec<f64>>,
     energy: Option<Vec<f64>>,
+    mode: Option<Vec<String>>,
 }
 
 #[derive(Serialize)]
@@ -508,6 +523,7 @@ fn read_raw(v: &Value) -> SpecResult<RawSpec> {
             t_final: sweep.req_list("t_final", number)?,
             delta: sweep.opt_list("delta", number)?,
             energy: sweep.opt_list("energy", number)?,
+            mode: sweep.opt_list("mode", string)?,
         },
         integration: match integration {
             Some(t) => Some(RawIntegration {
@@ -644,6 +660,39 @@ fn check_name(name: &str) -> SpecResult<()> {
     )))
 }
 
+/// The modes of the sweep: `grid.mode`, or the list `sweep.mode` (one or the other; fast PSS
+/// when neither is given).
+fn modes_of(raw: &RawSpec) -> SpecResult<Vec<Mode>> {
+    let parse = |field: String, name: &str| match name {
+        "fast-pss" => Ok(Mode::FastPss),
+        "full" => Ok(Mode::Full),
+        other => Err(usage(format!(
+            "{field} must be \"fast-pss\" or \"full\" (got {other:?})"
+        ))),
+    };
+    match (&raw.grid.mode, &raw.sweep.mode) {
+        (Some(m), None) => Ok(vec![parse("grid.mode".into(), m)?]),
+        (None, None) => Ok(vec![Mode::FastPss]),
+        (None, Some(list)) if list.is_empty() => {
+            Err(usage("sweep.mode must list at least one value"))
+        }
+        (None, Some(list)) => {
+            let modes = list
+                .iter()
+                .enumerate()
+                .map(|(k, m)| parse(format!("sweep.mode[{k}]"), m))
+                .collect::<SpecResult<Vec<_>>>()?;
+            if (1..modes.len()).any(|k| modes[..k].contains(&modes[k])) {
+                return Err(usage("sweep.mode must not list a mode twice"));
+            }
+            Ok(modes)
+        }
+        (Some(_), Some(_)) => Err(usage(
+            "grid.mode and sweep.mode both give the mode: keep one (sweep.mode to sweep it)",
+        )),
+    }
+}
+
 /// The energies of the sweep: `system.energy`, or the list `sweep.energy` (one or the other).
 fn energies(raw: &RawSpec) -> SpecResult<Vec<f64>> {
     let check = |field: String, energy: f64| {
@@ -700,15 +749,7 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
         Some(t) => pair_usize("grid.tile", t, [n_q2, n_p2])?,
         None => [DEFAULT_TILE.min(n_q2), DEFAULT_TILE.min(n_p2)],
     };
-    let mode = match g.mode.as_deref().unwrap_or("fast-pss") {
-        "fast-pss" => Mode::FastPss,
-        "full" => Mode::Full,
-        other => {
-            return Err(usage(format!(
-                "grid.mode must be \"fast-pss\" or \"full\" (got {other:?})"
-            )))
-        }
-    };
+    let modes = modes_of(&raw)?;
     let order_name = g.order.as_deref().unwrap_or(ScanOrder::default().name());
     let order = ScanOrder::from_name(order_name, g.order_seed.unwrap_or(1)).ok_or_else(|| {
         usage(format!(
@@ -880,20 +921,25 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
         .len()
         .saturating_mul(s.t_final.len())
         .saturating_mul(per_pair)
-        .saturating_mul(energies.len());
+        .saturating_mul(energies.len())
+        .saturating_mul(modes.len());
     if n_runs > MAX_RUNS {
         return Err(usage(format!(
-            "sweep must make at most {MAX_RUNS} runs (energy × method × tau × t_final × delta; got {n_runs})"
+            "sweep must make at most {MAX_RUNS} runs (energy × mode × method × tau × t_final × delta; got {n_runs})"
         )));
     }
     let mut runs = Vec::new();
-    for &energy in &energies {
+    for (&energy, &mode) in energies
+        .iter()
+        .flat_map(|e| modes.iter().map(move |m| (e, m)))
+    {
         for &tau in &s.tau {
             for &t_final in &s.t_final {
                 for m in &methods {
                     if !m.is_adaptive() {
                         runs.push(RunSpec {
                             energy,
+                            mode,
                             method: m.clone(),
                             tau,
                             t_final,
@@ -910,6 +956,7 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
                         }
                         runs.push(RunSpec {
                             energy,
+                            mode,
                             method: m.clone(),
                             tau,
                             t_final,
@@ -927,7 +974,6 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
             n_p2,
             tile_q2: tile[0],
             tile_p2: tile[1],
-            mode,
             q2_range,
             p2_range,
             order,
@@ -991,6 +1037,51 @@ method = ["tm-sbab2c"]
 tau = [0.05]
 t_final = [1e3]
 "#;
+
+    /// `sweep.mode` makes one run per mode, inside the energy axis and outside the others.
+    #[test]
+    fn mode_as_a_sweep_axis() {
+        let swept = MINIMAL
+            .replace("[sweep]", "[sweep]\nmode = [\"full\", \"fast-pss\"]")
+            .replace("tau = [0.05]", "tau = [0.05, 0.1]");
+        let j = parse(&swept, false).unwrap();
+        let modes: Vec<Mode> = j.runs.iter().map(|r| r.mode).collect();
+        use Mode::{FastPss, Full};
+        assert_eq!(modes, [Full, Full, FastPss, FastPss]);
+        assert!(j.sweeps_mode());
+        assert_eq!(j.cell_run(0).checkpoints_per_decade, CHECKPOINTS_PER_DECADE);
+        assert_eq!(j.cell_run(2).checkpoints_per_decade, 0);
+        let both = swept
+            .replace("energy = 0.125\n", "")
+            .replace("[sweep]", "[sweep]\nenergy = [0.1, 0.125]");
+        let j = parse(&both, false).unwrap();
+        let axes: Vec<(f64, Mode)> = j.runs.iter().map(|r| (r.energy, r.mode)).collect();
+        assert_eq!(
+            axes[..4],
+            [(0.1, Full), (0.1, Full), (0.1, FastPss), (0.1, FastPss)]
+        );
+        for (text, says) in [
+            (
+                swept.replace("[grid]", "[grid]\nmode = \"full\""),
+                "grid.mode and sweep.mode both give the mode",
+            ),
+            (
+                swept.replace("[\"full\", \"fast-pss\"]", "[]"),
+                "sweep.mode must list at least one value",
+            ),
+            (
+                swept.replace("\"fast-pss\"]", "\"fast\"]"),
+                "sweep.mode[1] must be \"fast-pss\" or \"full\"",
+            ),
+            (
+                swept.replace("\"fast-pss\"]", "\"full\"]"),
+                "must not list a mode twice",
+            ),
+        ] {
+            let msg = usage_message(parse(&text, false));
+            assert!(msg.contains(says), "{msg}");
+        }
+    }
 
     /// `sweep.energy` makes one run per energy (the outermost axis) on the grid of each.
     #[test]
@@ -1081,7 +1172,8 @@ t_final = [1e3]
         assert_eq!(j.name, "t");
         assert!(j.runs.iter().all(|r| r.energy == 0.125));
         assert!(!j.sweeps_energy());
-        assert_eq!(j.grid.mode, Mode::Full);
+        assert!(j.runs.iter().all(|r| r.mode == Mode::Full));
+        assert!(!j.sweeps_mode());
         assert_eq!(
             (j.grid.n_q2, j.grid.n_p2, j.grid.tile_q2, j.grid.tile_p2),
             (40, 30, 10, 10)
@@ -1146,7 +1238,7 @@ t_final = [1e3]
     fn a_minimal_spec_gets_the_defaults() {
         let j = parse(MINIMAL, false).unwrap();
         assert_eq!(j.name, "salient");
-        assert_eq!(j.grid.mode, Mode::FastPss);
+        assert_eq!(j.mode(0), Mode::FastPss);
         // The default 20 × 20 tile, clipped to the 10 cells along q2.
         assert_eq!((j.grid.tile_q2, j.grid.tile_p2), (10, 20));
         assert_eq!(j.protocol, Protocol::Restart);
@@ -1156,6 +1248,7 @@ t_final = [1e3]
             j.runs,
             [RunSpec {
                 energy: 0.125,
+                mode: Mode::FastPss,
                 method: Method::parse("tm-sbab2c").unwrap(),
                 tau: 0.05,
                 t_final: 1e3,

@@ -292,7 +292,13 @@ impl Simulation {
     /// it is given.
     pub fn new(spec_json: &str, params: Params) -> Result<Self, String> {
         let spec = spec::parse(spec_json, true).map_err(|e| e.0)?;
-        // The simulated world holds one grid: every run of the job shares it.
+        // The simulated world holds one grid in one mode: every run of the job shares them.
+        if spec.sweeps_mode() {
+            return Err(
+                "sweep.mode: the simulator takes one mode at a time (give grid.mode, or one value)"
+                    .into(),
+            );
+        }
         if spec.sweeps_energy() {
             return Err(
                 "sweep.energy: the simulator takes one energy at a time (give system.energy, or one value)"
@@ -303,7 +309,7 @@ impl Simulation {
             return Err("threads must be at least 1".into());
         }
         let grid = spec.grid(0);
-        let mode = spec.grid.mode;
+        let mode = spec.mode(0);
         let first = spec.cell_run(0);
         let lanes = params.lanes.unwrap_or_else(|| match &first.run.method {
             salient_core::Method::TangentMap(_) => executor::lanes(mode),
@@ -378,7 +384,7 @@ impl Simulation {
     /// The forecasts `params.forecast` asks for, made on first use.
     fn forecasts(&mut self) -> Option<Vec<Forecast>> {
         if self.forecasts.is_none() {
-            let mode = self.spec.grid.mode;
+            let mode = self.spec.mode(0);
             self.forecasts = match self.params.forecast {
                 ForecastSource::None => None,
                 ForecastSource::Perfect => Some(
@@ -409,7 +415,7 @@ impl Simulation {
 
     /// What the sequential rule integrates, summed over the runs (the longest orbit: of all).
     pub fn sequential(&mut self) -> Sequential {
-        let mode = self.spec.grid.mode;
+        let mode = self.spec.mode(0);
         let mut total = Sequential::default();
         for ledger in Self::sequential_ledgers(&self.grid, mode, &mut self.traces) {
             total.orbits += ledger.committed.len() as u64;
@@ -614,7 +620,7 @@ impl Simulation {
                         threads: self.params.threads as u32,
                     })
                     .map_err(|e| e.message().to_string())?;
-                let mut w = SimWorker::new(i, reg.worker_id, job, shape, self.spec.grid.mode);
+                let mut w = SimWorker::new(i, reg.worker_id, job, shape, self.spec.mode(0));
                 w.schedule_send(world, FIRST_POLL_NS);
                 Ok(w)
             })
@@ -693,7 +699,7 @@ impl Simulation {
         let one = self.run(1)?;
         let sequential = self.sequential();
         let labels: Vec<Forecast> =
-            Self::sequential_ledgers(&self.grid, self.spec.grid.mode, &mut self.traces)
+            Self::sequential_ledgers(&self.grid, self.spec.mode(0), &mut self.traces)
                 .iter()
                 .map(Ledger::forecast)
                 .collect();

@@ -93,7 +93,7 @@ pub(crate) fn compute_thread(
             draining.clone(),
         );
         source.add(w);
-        let mode = spec.grid.mode;
+        let mode = spec.mode(key.1 as usize);
         std::thread::scope(|scope| {
             scope.spawn(|| pool.install(|| integrate_stream(grid, cell_run, mode, local, &source)));
             // Leases of the same run join the stream; another run's lease, or the network

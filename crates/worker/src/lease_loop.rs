@@ -391,7 +391,8 @@ impl Poller<'_> {
                 continue;
             };
             tracing::debug!(lease = %tile, cells = lease.cells.len(), "leased");
-            if spec.grid.mode == salient_grid::Mode::FastPss {
+            let mode = spec.mode(tile.run as usize);
+            if mode == salient_grid::Mode::FastPss {
                 // Made here, not by the compute side, so that the outcomes relayed in
                 // this reply find it.
                 self.signals
@@ -399,7 +400,7 @@ impl Poller<'_> {
                     .expect("signals")
                     .ledger((tile.job, tile.run), &spec, None);
             }
-            self.one_at_a_time = spec.grid.mode == salient_grid::Mode::FastPss;
+            self.one_at_a_time = mode == salient_grid::Mode::FastPss;
             self.hungry_compute = false;
             self.held.push(tile);
             if self

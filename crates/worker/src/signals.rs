@@ -66,8 +66,8 @@ impl Signals {
             }
             RunLedger {
                 local: Arc::new(match grid {
-                    Some(g) => LocalLedger::new(g, spec.grid.mode),
-                    None => LocalLedger::new(&spec.grid(key.1 as usize), spec.grid.mode),
+                    Some(g) => LocalLedger::new(g, spec.mode(key.1 as usize)),
+                    None => LocalLedger::new(&spec.grid(key.1 as usize), spec.mode(key.1 as usize)),
                 }),
                 relayed: 0,
                 own: again,

@@ -379,7 +379,7 @@ mod tests {
         let grid = spec.grid(0);
         let cells: Vec<u32> = grid.canonical()[..3].to_vec();
         let (tx, mut rx) = mpsc::unbounded_channel();
-        let local = Arc::new(LocalLedger::new(&grid, spec.grid.mode));
+        let local = Arc::new(LocalLedger::new(&grid, spec.mode(0)));
         let source = LeaseSource::new(
             local.clone(),
             tx,
