@@ -65,7 +65,7 @@ fn short(v: f64) -> String {
     if s.len() <= 8 {
         return s;
     }
-    let t = format!("{v:.6e}");
+    let t = format!("{v:.5e}");
     let parsed: f64 = t.parse().unwrap_or(v);
     format!("{parsed}")
 }
