@@ -94,8 +94,9 @@ fn each_cell_of_the_class_map_is_drawn_in_its_class_colour() {
         y_label: "p₂",
         scale: None,
     };
+    let pixels = layout.cell_pixels().unwrap();
     let pixel = |i: usize, j: usize| {
-        let (x, y) = layout.cell_pixel(i, j).unwrap();
+        let (x, y) = pixels.centre(i, j);
         let k = 3 * (y as usize * width as usize + x as usize);
         [rgb[k], rgb[k + 1], rgb[k + 2]]
     };

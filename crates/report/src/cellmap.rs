@@ -59,15 +59,38 @@ pub fn render_cell_map(map: &CellMap, path: &Path) -> Result<(), ReportError> {
     write_figure(map, path, CELL_MAP_SIZE)
 }
 
-impl CellMap<'_> {
-    /// The pixel at the centre of cell (i, j) in the images [`render_cell_map`] writes (it
-    /// depends on the grid's shape alone, not on the ranges or texts).
-    pub fn cell_pixel(&self, i: usize, j: usize) -> Result<(u32, u32), ReportError> {
-        let area = draw_png(self, CELL_MAP_SIZE)?.plot_area;
-        let (x0, x1) = span(i, self.nx, area.x0, area.width());
-        let (y0, y1) = span_up(j, self.ny, area);
-        Ok((((x0 + x1) / 2) as u32, ((y0 + y1) / 2) as u32))
+/// Where the cells of an `nx` × `ny` map lie in the images [`render_cell_map`] writes (it
+/// depends on the grid's shape alone, not on the ranges or texts).
+#[derive(Clone, Copy, Debug)]
+pub struct CellPixels {
+    area: PixelRect,
+    nx: usize,
+    ny: usize,
+}
+
+impl CellPixels {
+    /// The pixel at the centre of cell (i, j).
+    pub fn centre(&self, i: usize, j: usize) -> (u32, u32) {
+        let (x0, x1) = span(i, self.nx, self.area.x0, self.area.width());
+        let (y0, y1) = span_up(j, self.ny, self.area);
+        (((x0 + x1) / 2) as u32, ((y0 + y1) / 2) as u32)
     }
+}
+
+impl CellMap<'_> {
+    /// Where this map's cells lie in its images (drawn once to find out).
+    pub fn cell_pixels(&self) -> Result<CellPixels, ReportError> {
+        Ok(CellPixels {
+            area: draw_png(self, CELL_MAP_SIZE)?.plot_area,
+            nx: self.nx,
+            ny: self.ny,
+        })
+    }
+}
+
+fn rgb(category: &Category) -> RGBColor {
+    let [r, g, b] = category.colour;
+    RGBColor(r, g, b)
 }
 
 /// Pixels `[from, to)` of cell `k` of `n` along a side `len` pixels long starting at `origin`.
@@ -184,12 +207,7 @@ impl Figure for CellMap<'_> {
 
 impl CellMap<'_> {
     fn colour(&self, code: u8) -> RGBColor {
-        self.colour_of(&self.categories[usize::from(code)])
-    }
-
-    fn colour_of(&self, category: &Category) -> RGBColor {
-        let [r, g, b] = category.colour;
-        RGBColor(r, g, b)
+        rgb(&self.categories[usize::from(code)])
     }
 
     /// Every column of cells as filled rectangles, one per run of equal codes along y. Cells
@@ -253,7 +271,7 @@ impl CellMap<'_> {
         for (k, category) in self.categories[first..].iter().enumerate() {
             let y = top + k as i32 * row_h;
             let corners = [(x, y), (x + side, y + side)];
-            root.draw(&Rectangle::new(corners, self.colour_of(category).filled()))
+            root.draw(&Rectangle::new(corners, rgb(category).filled()))
                 .map_err(plot_err)?;
             root.draw(&Rectangle::new(corners, BLACK.stroke_width(1)))
                 .map_err(plot_err)?;
@@ -300,7 +318,7 @@ impl CellMap<'_> {
             let (row0, row1) = span_up(k, bands, bar);
             root.draw(&Rectangle::new(
                 [(bar.x0, row0), (bar.x1, row1)],
-                self.colour_of(&self.categories[k]).filled(),
+                rgb(&self.categories[k]).filled(),
             ))
             .map_err(plot_err)?;
         }
@@ -399,10 +417,11 @@ mod tests {
         let codes = codes();
         let m = map(&codes);
         let canvas = draw_png(&m, CELL_MAP_SIZE).unwrap();
+        let pixels = m.cell_pixels().unwrap();
         // The forbidden corner, a cell of the island, a cell of the sea, then every cell.
         for (i, j, code) in [(0, 0, 0u8), (8, 10, 1), (25, 10, 2)] {
             assert_eq!(codes[i * 20 + j], code);
-            let (x, y) = m.cell_pixel(i, j).unwrap();
+            let (x, y) = pixels.centre(i, j);
             assert_eq!(
                 canvas.pixel(x as i32, y as i32),
                 CATEGORIES[usize::from(code)].colour
@@ -410,7 +429,7 @@ mod tests {
         }
         for i in 0..30 {
             for j in 0..20 {
-                let (x, y) = m.cell_pixel(i, j).unwrap();
+                let (x, y) = pixels.centre(i, j);
                 let want = CATEGORIES[usize::from(codes[i * 20 + j])].colour;
                 assert_eq!(canvas.pixel(x as i32, y as i32), want, "cell ({i}, {j})");
             }
@@ -494,8 +513,9 @@ mod tests {
             ..map(&codes)
         };
         let canvas = draw_png(&m, CELL_MAP_SIZE).unwrap();
+        let pixels = m.cell_pixels().unwrap();
         for (i, j) in [(5, 10), (15, 10), (25, 10), (0, 0)] {
-            let (x, y) = m.cell_pixel(i, j).unwrap();
+            let (x, y) = pixels.centre(i, j);
             let want = categories[usize::from(codes[i * 20 + j])].colour;
             assert_eq!(canvas.pixel(x as i32, y as i32), want, "cell ({i}, {j})");
         }

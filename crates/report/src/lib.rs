@@ -29,7 +29,7 @@ mod netcdf;
 mod npy;
 mod table;
 
-pub use cellmap::{render_cell_map, Category, CellMap, Scale, CELL_MAP_SIZE};
+pub use cellmap::{render_cell_map, Category, CellMap, CellPixels, Scale, CELL_MAP_SIZE};
 pub use error::ReportError;
 pub use figure::ImageFormat;
 pub use lines::{render_lines, LinePlot};

@@ -22,7 +22,6 @@ pub struct Axis<'a> {
 /// The values of a variable over the two axes, row-major: `[i * ny + j]` at (x_i, y_j).
 #[derive(Clone, Copy, Debug)]
 pub enum Values<'a> {
-    I8(&'a [i8]),
     I32(&'a [i32]),
     F64(&'a [f64]),
 }
@@ -30,7 +29,6 @@ pub enum Values<'a> {
 impl Values<'_> {
     fn len(&self) -> usize {
         match self {
-            Values::I8(v) => v.len(),
             Values::I32(v) => v.len(),
             Values::F64(v) => v.len(),
         }
@@ -132,7 +130,6 @@ fn definition(file: &GridFile) -> Result<DataSet, ReportError> {
             )));
         }
         match var.values {
-            Values::I8(_) => ds.add_var_i8(var.name, &dims),
             Values::I32(_) => ds.add_var_i32(var.name, &dims),
             Values::F64(_) => ds.add_var_f64(var.name, &dims),
         }
@@ -173,7 +170,6 @@ pub fn write_netcdf(file: &GridFile, path: &Path) -> Result<(), ReportError> {
     }
     for var in &file.vars {
         match var.values {
-            Values::I8(v) => writer.write_var_i8(var.name, v),
             Values::I32(v) => writer.write_var_i32(var.name, v),
             Values::F64(v) => writer.write_var_f64(var.name, v),
         }
