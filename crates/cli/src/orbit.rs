@@ -207,6 +207,7 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
         crossings: true,
         gali: true,
         energy: true,
+        growth: true,
         samples_per_decade: if a.out.is_some() {
             a.samples_per_decade
         } else {
@@ -297,6 +298,9 @@ fn summary_json(job: &OrbitJob, r: &OrbitResult<2>, wall: f64) -> Value {
         "sali": r.sali,
         "gali": gali,
         "mle": r.mle,
+        "megno": r.growth.map(|g| g.megno),
+        "megno_mean": r.growth.map(|g| g.megno_mean),
+        "fli": r.growth.map(|g| g.fli),
         "energy_error_max": r.energy_error_max,
         "steps": r.steps,
         "crossings": r.crossings.len(),
@@ -347,6 +351,13 @@ fn summary_text(s: &Value) -> String {
     );
     let _ = writeln!(
         t,
+        "MEGNO Y {}  ⟨Y⟩ {}  FLI {}",
+        num("megno"),
+        num("megno_mean"),
+        num("fli")
+    );
+    let _ = writeln!(
+        t,
         "steps {}  crossings {}  wall {:.3} s  {:.1} ns/step",
         s["steps"],
         s["crossings"],
@@ -379,13 +390,20 @@ fn write_outputs(
     for k in 2..=k_max {
         let _ = write!(csv, ",gali_{k}");
     }
-    csv.push_str(",mle,energy_error\n");
+    csv.push_str(",mle,megno,megno_mean,fli,energy_error\n");
     for s in &r.series {
         let _ = write!(csv, "{},{}", csv_number(s.t), csv_number(s.sali));
         for &g in &s.gali {
             let _ = write!(csv, ",{}", csv_number(g));
         }
-        let _ = writeln!(csv, ",{},{}", csv_number(s.mle), csv_number(s.energy_error));
+        let _ = write!(csv, ",{}", csv_number(s.mle));
+        let growth = s
+            .growth
+            .map_or([f64::NAN; 3], |g| [g.megno, g.megno_mean, g.fli]);
+        for v in growth {
+            let _ = write!(csv, ",{}", csv_number(v));
+        }
+        let _ = writeln!(csv, ",{}", csv_number(s.energy_error));
     }
     write_file(&dir.join("series.csv"), &csv)?;
 
@@ -398,7 +416,8 @@ fn write_outputs(
     plot_orbit(job, r, k_max, dir)
 }
 
-/// indicators.png (SALI with its thresholds, GALI_k, the mLE: three panels), energy.png and
+/// indicators.png (SALI with its thresholds, GALI_k, the mLE, MEGNO's ⟨Y⟩ and the FLI: five
+/// panels), energy.png and
 /// section.png (the crossings of q1 = 0 upward) of one orbit; warnings for plots without data.
 fn plot_orbit(
     job: &OrbitJob,
@@ -415,6 +434,8 @@ fn plot_orbit(
         .map(|k| column(&|s| s.gali[k]))
         .collect();
     let mle = column(&|s| s.mle);
+    let megno_mean = column(&|s| s.growth.map_or(f64::NAN, |g| g.megno_mean));
+    let fli = column(&|s| s.growth.map_or(f64::NAN, |g| g.fli));
     let energy = column(&|s| s.energy_error);
     let labels: Vec<String> = (2..=k_max).map(|k| format!("GALI_{k}")).collect();
     let title = format!(
@@ -471,17 +492,33 @@ fn plot_orbit(
         xs: &t,
         ys: &mle,
     }];
+    let megno_line = vec![Line {
+        label: "MEGNO ⟨Y⟩",
+        xs: &t,
+        ys: &megno_mean,
+    }];
+    let quasi_periodic = vec![HLine {
+        label: "quasi-periodic: 2",
+        y: 2.0,
+    }];
+    let fli_line = vec![Line {
+        label: "FLI",
+        xs: &t,
+        ys: &fli,
+    }];
     let indicators = Panels {
         panels: vec![
             sali_panel,
             panel("", "GALI_k", gali_lines, Vec::new()),
             panel("", "mLE", mle_line, Vec::new()),
+            panel("", "⟨Y⟩", megno_line, quasi_periodic),
+            panel("", "FLI", fli_line, Vec::new()),
         ],
     };
     let mut warnings = Vec::new();
     let path = dir.join("indicators.png");
     warn_if_empty(
-        render_panels(&indicators, &path, 1000, 1300),
+        render_panels(&indicators, &path, 1000, 1900),
         &path,
         &mut warnings,
     )?;

@@ -13,7 +13,7 @@
 
 use crate::dop853::{Dense, Dop853, StepFailure};
 use crate::hamiltonian::Hamiltonian;
-use crate::indicators::{gali, in_band, may_be_aligned, norm2, sali};
+use crate::indicators::{gali, in_band, may_be_aligned, norm2, sali, GrowthHistory};
 use crate::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Sample, Status,
 };
@@ -379,6 +379,8 @@ pub(crate) struct Tally {
     /// docs/performance.md).
     growth: f64,
     energy_max: f64,
+    /// MEGNO and the FLI, when requested.
+    history: GrowthHistory,
 }
 
 impl Tally {
@@ -386,7 +388,16 @@ impl Tally {
         ln_growth: 0.0,
         growth: 1.0,
         energy_max: 0.0,
+        history: GrowthHistory::NEW,
     };
+
+    /// Takes ln‖w₁‖ at a step end at `t` into the MEGNO and FLI history, from the first vector's
+    /// squared norm `n2` there (before any renormalisation).
+    #[inline(always)]
+    fn note_growth(&mut self, t: f64, n2: f64) {
+        let ln_norm = self.ln_growth + self.growth.ln() + 0.5 * n2.ln();
+        self.history.note(t, ln_norm);
+    }
 
     /// Takes note of a renormalisation that removed `factor` from the first vector. Factors
     /// are multiplied up and their product's logarithm folded in before it could leave f64's
@@ -476,6 +487,8 @@ pub struct QuietRules {
     checks: EndChecks,
     /// [`watch_poll`] of τ.
     watch_poll: u64,
+    /// [`Requests::growth`].
+    growth: bool,
 }
 
 /// Takes a restart-protocol step that ended at `t` into `pace` when it needs nothing of the
@@ -517,6 +530,9 @@ pub(crate) fn quiet_restart_step<const K: usize>(
         .is_some()
     {
         return false;
+    }
+    if rules.growth {
+        tally.note_growth(t, sums.n2[0]);
     }
     *pace = Pace {
         n,
@@ -561,6 +577,7 @@ impl<const K: usize> Books<'_, K> {
             early_stop: th.early_stop.then_some(th.chaotic),
             checks: self.checks,
             watch_poll: self.watch_poll,
+            growth: self.requests.growth,
         }
     }
 
@@ -588,6 +605,7 @@ impl<const K: usize> Books<'_, K> {
                 },
                 mle: self.mle(tally, y, t),
                 energy_error: energy_error(),
+                growth: self.requests.growth.then(|| tally.history.values()),
             });
         }
         let th = self.config.thresholds;
@@ -862,6 +880,9 @@ where
             status = s;
             break;
         }
+        if requests.growth {
+            pace.tally.note_growth(integ.t(), sums.n2[0]);
+        }
         let q1_before = core::mem::replace(&mut pace.q1, sums.q1);
         if requests.crossings && q1_before < 0.0 && sums.q1 >= 0.0 {
             let c = locate_dense(integ);
@@ -982,6 +1003,7 @@ where
         out.p_end = y.p;
         out.sali = sali((&y.dq[0], &y.dp[0]), (&y.dq[1], &y.dp[1]));
         out.mle = books.mle(&pace.tally, &y, t_end_state);
+        out.growth = requests.growth.then(|| pace.tally.history.values());
         out.gali = if requests.gali {
             gali(&y.dq, &y.dp)
         } else {
@@ -999,6 +1021,7 @@ where
         out.p_end = y.p;
         out.sali = f64::NAN;
         out.mle = f64::NAN;
+        out.growth = None;
         out.class = None;
     }
     Ok(out)

@@ -614,7 +614,7 @@ fn feed_loop<
         requests,
         initial: initial_vectors::<N, K>(config.deviation),
     };
-    let mut st = LaneState::<H, N, K, L>::new(map, n_final, requests.energy);
+    let mut st = LaneState::<H, N, K, L>::new(map, n_final, requests.every_step());
     for l in 0..L {
         st.fill(l, false, &setup, feed);
     }
@@ -626,13 +626,13 @@ fn feed_loop<
         factor: alignment_factor(chaotic),
         crossings: requests.crossings,
         early: config.thresholds.early_stop,
-        every_step: requests.energy,
+        every_step: requests.every_step(),
         minors: (config.thresholds.early_stop && chaotic >= MINORS_RESOLVE)
             .then_some(4.0 * chaotic * chaotic),
     };
     // The 4-lane loop's quiet windows (the 8-lane resident loop keeps every screen: any more
     // work in it makes LLVM give up keeping its state in registers).
-    let quiet_rules = if L == 4 && !RESIDENT && !requests.energy {
+    let quiet_rules = if L == 4 && !RESIDENT && !requests.every_step() {
         QuietRules::new(shape, map, config)
     } else {
         None

@@ -2,7 +2,9 @@
 //! stop), computing SALI every τ and only what the caller asked for besides.
 
 use crate::hamiltonian::Hamiltonian;
-use crate::indicators::{gali, may_be_aligned, norm2, pow2_rescale, sali, LogGrowth};
+use crate::indicators::{
+    gali, may_be_aligned, norm2, pow2_rescale, sali, GrowthHistory, GrowthIndicators, LogGrowth,
+};
 use crate::real::dot;
 use crate::section::{locate_upward, Crossing, CrossingStep};
 use crate::tangent::{EdgeIncrement, Phase, Stepping, TangentMap};
@@ -152,6 +154,17 @@ pub struct Requests {
     pub energy: bool,
     /// Record indicators at this many log-spaced times per decade of t (0: none).
     pub samples_per_decade: u32,
+    /// MEGNO and the FLI ([`GrowthIndicators`]) from ln‖w₁‖ at every step (tangent maps) or
+    /// step end (adaptive methods).
+    pub growth: bool,
+}
+
+impl Requests {
+    /// Whether the bookkeeping runs after every step (the batched driver's screens and quiet
+    /// windows skip steps where nothing of the orbit's outcome can change).
+    pub fn every_step(&self) -> bool {
+        self.energy || self.growth
+    }
 }
 
 /// Indicators at one time.
@@ -163,6 +176,9 @@ pub struct Sample {
     pub gali: Vec<f64>,
     pub mle: f64,
     pub energy_error: f64,
+    /// MEGNO and the FLI (when requested; with the free protocol, at the end of the step that
+    /// holds `t`).
+    pub growth: Option<GrowthIndicators>,
 }
 
 /// What an orbit integration produced.
@@ -180,6 +196,8 @@ pub struct OrbitResult<const N: usize> {
     pub gali: Vec<f64>,
     /// Finite-time maximal Lyapunov exponent (1/t) ln‖w1(t)‖.
     pub mle: f64,
+    /// MEGNO and the FLI at t_reached (when requested; `None` for orbits without a class).
+    pub growth: Option<GrowthIndicators>,
     /// max |ΔH/H| over the steps (when requested).
     pub energy_error_max: Option<f64>,
     pub crossings: Vec<Crossing<N>>,
@@ -201,6 +219,7 @@ impl<const N: usize> OrbitResult<N> {
             sali: f64::NAN,
             gali: Vec::new(),
             mle: f64::NAN,
+            growth: None,
             energy_error_max: None,
             crossings: Vec::new(),
             series: Vec::new(),
@@ -351,6 +370,7 @@ pub(crate) struct Tracker<'h, H, const K: usize> {
     samples: Vec<u64>,
     next_sample: usize,
     growth: [LogGrowth; K],
+    history: GrowthHistory,
     energy_max: f64,
     status: Status,
 }
@@ -383,6 +403,7 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
             samples: sample_steps(requests.samples_per_decade, n_final),
             next_sample: 0,
             growth: [LogGrowth::default(); K],
+            history: GrowthHistory::NEW,
             energy_max: 0.0,
             status: Status::Ok,
         }
@@ -448,6 +469,10 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
                 self.growth[k].binary_orders += e;
                 n2[k] *= s * s;
             }
+        }
+        if self.requests.growth {
+            let t = n as f64 * self.tau;
+            self.history.note(t, self.growth[0].ln_norm(n2[0]));
         }
         if self.requests.crossings && q_prev[0] < 0.0 && x.q[0] >= 0.0 {
             match defer_crossing {
@@ -525,6 +550,7 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
         if matches!(self.status, Status::Ok | Status::ChaoticEarlyStop) {
             out.sali = sali((&x.dq[0], &x.dp[0]), (&x.dq[1], &x.dp[1]));
             out.mle = mle(&self.growth[0], x, t);
+            out.growth = self.requests.growth.then(|| self.history.values());
             out.gali = if self.requests.gali {
                 gali(&x.dq, &x.dp)
             } else {
@@ -541,6 +567,7 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
         } else {
             out.sali = f64::NAN;
             out.mle = f64::NAN;
+            out.growth = None;
             out.gali.clear();
             out.class = None;
         }
@@ -567,6 +594,7 @@ impl<'h, H, const K: usize> Tracker<'h, H, K> {
             },
             mle: mle(&self.growth[0], x, t),
             energy_error: self.energy_error(x),
+            growth: self.requests.growth.then(|| self.history.values()),
         }
     }
 }

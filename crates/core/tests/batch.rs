@@ -8,10 +8,15 @@
 //! does not compile the drivers again.
 
 use salient_core::batch::Isa;
+use salient_core::indicators::GrowthIndicators;
 use salient_core::orbit::{OrbitConfig, OrbitResult, Requests, Status};
 use salient_core::run::{integrate_batch_henon_heiles, run_henon_heiles, MethodRun, Vectors};
 use salient_core::section::on_section;
 use salient_core::{HenonHeiles, Method, Scheme, TangentMap};
+
+fn growth_bits(g: Option<GrowthIndicators>) -> Option<[u64; 3]> {
+    g.map(|g| [g.megno, g.megno_mean, g.fli].map(f64::to_bits))
+}
 
 fn same_bits(a: &OrbitResult<2>, b: &OrbitResult<2>) -> bool {
     let f = |x: f64| x.to_bits();
@@ -26,6 +31,7 @@ fn same_bits(a: &OrbitResult<2>, b: &OrbitResult<2>) -> bool {
             .map(|&x| f(x)))
         && f(a.sali) == f(b.sali)
         && f(a.mle) == f(b.mle)
+        && growth_bits(a.growth) == growth_bits(b.growth)
         && a.gali
             .iter()
             .map(|&x| f(x))
@@ -35,6 +41,7 @@ fn same_bits(a: &OrbitResult<2>, b: &OrbitResult<2>) -> bool {
         && a.series.iter().zip(&b.series).all(|(x, y)| {
             [x.t, x.sali, x.mle, x.energy_error].map(f)
                 == [y.t, y.sali, y.mle, y.energy_error].map(f)
+                && growth_bits(x.growth) == growth_bits(y.growth)
                 && x.gali
                     .iter()
                     .map(|&g| f(g))
@@ -176,6 +183,14 @@ fn batched_lanes_equal_scalar_orbits_bit_for_bit() {
     };
     check_varied::<4>("sbab2c", 0.5, 1500.0, series);
     check_varied::<8>("saba2c", 0.1, 1000.0, series);
+    // MEGNO and the FLI: the tracker at every step, in every lane.
+    let growth = Requests {
+        growth: true,
+        samples_per_decade: 5,
+        ..crossings
+    };
+    check_varied::<4>("sbab2c", 0.05, 1500.0, growth);
+    check_varied::<8>("sbab2c", 0.5, 1500.0, growth);
 }
 
 /// The 4-lane driver's quiet windows (SBAB2C at small τ: 14 steps at τ = 0.01, 2 at 0.05)
@@ -463,6 +478,14 @@ fn adaptive_lanes_equal_scalar_orbits_bit_for_bit() {
         energy: true,
         gali: true,
         samples_per_decade: 5,
+        growth: true,
+    };
+    // MEGNO and the FLI without the energy request: lanes take quiet restart steps for the
+    // driver, which must note the same growth.
+    let growing = Requests {
+        crossings: true,
+        growth: true,
+        ..Requests::default()
     };
     let points = |energy| -> Vec<_> {
         (0..24)
@@ -479,10 +502,13 @@ fn adaptive_lanes_equal_scalar_orbits_bit_for_bit() {
         (Method::Taylor, Protocol::Restart, 0.1, 600.0, 1e-9, None, crossings, 0.125, &bound),
         (Method::Taylor, Protocol::Free, 0.1, 600.0, 1e-9, None, everything, 0.2, &escaping),
         (Method::Taylor, Protocol::Restart, 0.5, 400.0, 1e-7, None, crossings, 0.125, &bound),
+        (Method::Taylor, Protocol::Restart, 0.05, 400.0, 1e-9, None, growing, 0.125, &bound),
         (Method::TaylorDd, Protocol::Restart, 0.5, 600.0, 1e-9, None, everything, 0.2, &escaping),
         (Method::TaylorDd, Protocol::Free, 0.1, 600.0, 1e-9, None, crossings, 0.125, &bound),
         (Method::TaylorDd, Protocol::Restart, 0.05, 400.0, 1e-7, None, crossings, 0.125, &bound),
         (Method::Dop853, Protocol::Restart, 0.05, 400.0, 1e-7, None, crossings, 0.125, &bound),
+        (Method::Dop853, Protocol::Restart, 0.05, 400.0, 1e-7, None, growing, 0.125, &bound),
+        (Method::TaylorDd, Protocol::Restart, 0.05, 400.0, 1e-7, None, growing, 0.125, &bound),
         (Method::Dop853, Protocol::Free, 0.05, 600.0, 1e-9, None, everything, 0.2, &escaping),
         (Method::Dop853, Protocol::Restart, 0.5, 400.0, 1e-7, None, crossings, 0.125, &bound),
         // Long runs take fewer lanes.

@@ -393,3 +393,64 @@ proptest! {
         }
     }
 }
+
+/// MEGNO and the FLI against their theory (Cincotta & Simó 2000; Froeschlé, Lega & Gonczi
+/// 1997) for the tangent map, DOP853 and f64 Taylor: on R1 Y → 2 (within 0.05 at t = 1e4; the
+/// running mean ⟨Y⟩, which still carries the first thousand time units where Y climbs from 0,
+/// within 0.1) and the FLI grows like ln t; on C1 ⟨Y⟩ ≈ λt/2 with λ the finite-time mLE and the
+/// FLI grows like λt.
+#[test]
+fn megno_and_fli_follow_theory_on_r1_and_c1() {
+    use salient_core::adaptive::Protocol;
+    use salient_core::run::{run_henon_heiles, MethodRun, Vectors};
+    use salient_core::Method;
+    let requests = Requests {
+        growth: true,
+        samples_per_decade: 1,
+        ..Requests::default()
+    };
+    let methods = [
+        (Method::TangentMap(sbab2c()), None),
+        (Method::Dop853, Some(1e-10)),
+        (Method::Taylor, Some(1e-10)),
+    ];
+    for (method, delta) in methods {
+        let run = MethodRun {
+            method,
+            delta,
+            protocol: Protocol::Restart,
+        };
+        let mut config = OrbitConfig::new(0.05, 1e4);
+        config.thresholds.early_stop = false;
+        let fli_at = |r: &salient_core::orbit::OrbitResult<2>, t: f64| {
+            let s = r.series.iter().find(|s| s.t == t).expect("sampled");
+            s.growth.expect("requested").fli
+        };
+        // R1 sits on the symmetry line p2 = 0, where the δq1 axis hardly grows (‖w1‖ = O(1):
+        // ⟨Y⟩ ≈ 0, as on a periodic orbit); a generic vector shows the torus's linear growth.
+        config.deviation = Deviation::Random { seed: 3 };
+        let r = run_henon_heiles(&run, ENERGY, r1(), &config, &requests, Vectors::Two);
+        let g = r.growth.expect("requested");
+        let label = format!("{:?} R1 {g:?}", run.method);
+        assert!((g.megno - 2.0).abs() < 0.05, "{label}");
+        assert!((g.megno_mean - 2.0).abs() < 0.1, "{label}");
+        // Samples at 10^k steps of 0.05, and the end.
+        let gain = fli_at(&r, 1e4) - fli_at(&r, 500.0);
+        assert!(
+            (gain - 20f64.ln()).abs() < 0.5,
+            "{label}: FLI gained {gain}"
+        );
+        config.deviation = Deviation::Axes;
+        let r = run_henon_heiles(&run, ENERGY, c1(), &config, &requests, Vectors::Two);
+        let g = r.growth.expect("requested");
+        let label = format!("{:?} C1 {g:?} mLE {}", run.method, r.mle);
+        let half_lambda_t = r.mle * 1e4 / 2.0;
+        assert!((g.megno_mean / half_lambda_t - 1.0).abs() < 0.1, "{label}");
+        assert!(r.mle > 0.04, "{label}");
+        let slope = (fli_at(&r, 1e4) - fli_at(&r, 5e3)) / 5e3;
+        assert!(
+            (slope / r.mle - 1.0).abs() < 0.15,
+            "{label}: FLI slope {slope}"
+        );
+    }
+}
