@@ -119,6 +119,23 @@ pub fn assert_same_outputs(a: &Path, b: &Path) {
                 y.display()
             );
         }
+        // The per-cell indicators' files, in runs that have them.
+        for f in [
+            "mle.npy",
+            "megno.npy",
+            "megno_mean.npy",
+            "fli.npy",
+            "megno_map.svg",
+        ] {
+            let (bx, by) = (std::fs::read(x.join(f)).ok(), std::fs::read(y.join(f)).ok());
+            assert!(
+                bx == by,
+                "{} differs between {} and {} (or is in one only)",
+                f,
+                x.display(),
+                y.display()
+            );
+        }
     }
 }
 

@@ -190,10 +190,11 @@ delta = [1e-6]
         .collect();
     assert_eq!(energies, [0.1, 0.1, 0.15, 0.15]);
     // A mode sweep: full mode and fast PSS of one spec, each leased by its own rule, the same
-    // files as `salient run`.
+    // files as `salient run`; the full-mode runs with the per-cell indicators.
     let m = d.join("mode");
     std::fs::create_dir_all(&m).unwrap();
-    let swept = text.replace("[sweep]", "[sweep]\nmode = [\"full\", \"fast-pss\"]");
+    let swept = text.replace("[sweep]", "[sweep]\nmode = [\"full\", \"fast-pss\"]")
+        + "[integration]\nindicators = true\n";
     let (summary, _) = submit_and_run(&m, &write_spec(&m, "mode.toml", &swept), &url);
     let modes: Vec<&str> = summary["runs"]
         .as_array()
@@ -202,6 +203,13 @@ delta = [1e-6]
         .map(|r| r["mode"].as_str().unwrap())
         .collect();
     assert_eq!(modes, ["full", "full", "fast-pss", "fast-pss"]);
+    let indicators: Vec<bool> = summary["runs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["indicators"].as_bool().unwrap())
+        .collect();
+    assert_eq!(indicators, [true, true, false, false]);
 }
 
 #[test]

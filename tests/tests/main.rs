@@ -9,6 +9,7 @@ mod docs_examples;
 mod hard_cases_cli;
 mod hard_cases_numerics;
 mod hardening_cli;
+mod indicators_cli;
 mod maps_cli;
 mod orbit_cli;
 mod plain_c_cli;

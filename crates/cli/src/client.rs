@@ -13,7 +13,9 @@ use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use salient_grid::Ledger;
 use salient_proto::v1;
 use salient_proto::v1::client_service_client::ClientServiceClient;
-use salient_proto::{endpoint, explain_transport, outcome_from_wire, Token, MAX_MESSAGE_BYTES};
+use salient_proto::{
+    endpoint, explain_transport, outcome_from_wire, Expected, Token, MAX_MESSAGE_BYTES,
+};
 use std::error::Error;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -538,7 +540,7 @@ async fn fetch_and_write(
     let mut spec: Option<JobSpec> = None;
     // Per run: its header, the ledger being rebuilt, the checkpoint count outcomes carry, and
     // its grid (the spec's cells at the run's energy).
-    let mut runs: Vec<(v1::RunHeader, Ledger, usize, salient_grid::Grid)> = Vec::new();
+    let mut runs: Vec<(v1::RunHeader, Ledger, Expected, salient_grid::Grid)> = Vec::new();
     while let Some(chunk) = stream
         .message()
         .await
@@ -557,18 +559,18 @@ async fn fetch_and_write(
                 if h.run as usize >= s.runs.len() {
                     return Err(bad(format!("run {} is not in the spec", h.run)));
                 }
-                let checkpoints = s.cell_run(h.run as usize).checkpoint_steps().len();
+                let expected = Expected::of_run(&s.cell_run(h.run as usize));
                 let grid = s.grid(h.run as usize);
                 let mode = s.mode(h.run as usize);
-                runs.push((h, Ledger::new(&grid, mode), checkpoints, grid));
+                runs.push((h, Ledger::new(&grid, mode), expected, grid));
             }
             Some(Part::Outcomes(batch)) => {
-                let (_, ledger, checkpoints, grid) = runs
+                let (_, ledger, expected, grid) = runs
                     .iter_mut()
                     .find(|(h, ..)| h.run == batch.run)
                     .ok_or_else(|| bad(format!("outcomes of unknown run {}", batch.run)))?;
                 for o in &batch.outcomes {
-                    ledger.offer(outcome_from_wire(o, grid, *checkpoints).map_err(bad)?);
+                    ledger.offer(outcome_from_wire(o, grid, *expected).map_err(bad)?);
                 }
             }
             None => return Err(bad("an empty message".into())),

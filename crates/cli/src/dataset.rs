@@ -8,7 +8,7 @@ use salient_core::orbit::Status;
 use salient_report::{write_netcdf, AttrValue, Axis, GridFile, GridVar, Values};
 use serde_json::Value;
 
-use crate::run::{RunResult, CLASS_CODE_NAMES};
+use crate::run::{RunResult, CLASS_CODE_NAMES, INDICATORS};
 use crate::spec::JobSpec;
 use crate::usage::{runtime, CliResult};
 
@@ -64,7 +64,8 @@ pub fn write_results_nc(job: &JobSpec, r: &RunResult, source: &Value, dir: &Path
         t_end[k] = l.t_end;
     }
     let text = |s: &str| AttrValue::Text(s.to_string());
-    let vars = vec![
+    let indicators = r.indicator_values();
+    let mut vars = vec![
         GridVar {
             name: "class",
             long_name: "class of the cell (fast PSS: of the orbit that labelled it)",
@@ -101,6 +102,14 @@ pub fn write_results_nc(job: &JobSpec, r: &RunResult, source: &Value, dir: &Path
             attrs: vec![],
         },
     ];
+    for ((name, long_name), v) in INDICATORS.iter().zip(indicators.iter().flatten()) {
+        vars.push(GridVar {
+            name,
+            long_name,
+            values: Values::F64(v),
+            attrs: vec![],
+        });
+    }
     let s = r.spec();
     let th = job.thresholds;
     let mut attrs = vec![

@@ -1,5 +1,6 @@
 //! The maps of one run, each as PNG and SVG: `class_map` (every cell's class, or why it has
-//! none) and `map` (log₁₀ SALI in bands whose hue changes at the classification thresholds).
+//! none), `map` (log₁₀ SALI in bands whose hue changes at the classification thresholds) and,
+//! with `integration.indicators`, `megno_map`, `fli_map` and `mle_map`.
 
 use std::path::Path;
 
@@ -7,7 +8,7 @@ use salient_core::orbit::{Class, Status};
 use salient_grid::Mode;
 use salient_report::{render_cell_map, Category, CellMap, Scale};
 
-use crate::run::RunResult;
+use crate::run::{RunResult, INDICATORS};
 use crate::spec::JobSpec;
 use crate::usage::{runtime, CliResult};
 
@@ -207,21 +208,51 @@ fn write_sali_map(
     job: &JobSpec,
     r: &RunResult,
     sali: &[f64],
-    (class_codes, counts): (&[u8], &[u64; MAP_CLASSES.len()]),
+    classes: (&[u8], &[u64; MAP_CLASSES.len()]),
     title: &str,
     dir: &Path,
 ) -> CliResult<()> {
     let edges: Vec<f64> = (0..=SALI_DECADES)
         .map(|k| k as f64 - SALI_DECADES as f64)
         .collect();
-    let mut categories: Vec<Category> = edges[..SALI_DECADES]
+    let colours: Vec<[u8; 3]> = edges[..SALI_DECADES]
         .iter()
-        .map(|&lo| Category {
-            label: "",
-            colour: band_colour(lo, job),
-        })
+        .map(|&lo| band_colour(lo, job))
         .collect();
-    // The cells without a SALI class keep their class-map category, after the bands.
+    let log_sali: Vec<f64> = sali.iter().map(|v| v.log10()).collect();
+    let bands = Bands {
+        label: "log₁₀ SALI",
+        edges: &edges,
+        colours: &colours,
+    };
+    write_banded_map(r, &log_sali, &bands, classes, title, &dir.join("map"))
+}
+
+/// A quantity in bands: `colours[k]` for the values from `edges[k]` to `edges[k + 1]`, values
+/// below or above the edges in the end bands.
+struct Bands<'a> {
+    label: &'a str,
+    edges: &'a [f64],
+    colours: &'a [[u8; 3]],
+}
+
+/// `path`.png/.svg: every classified cell's value of `values` in `bands`, the other cells in
+/// their class-map colours (`classes` is [`categories_of`]'s).
+fn write_banded_map(
+    r: &RunResult,
+    values: &[f64],
+    bands: &Bands,
+    (class_codes, counts): (&[u8], &[u64; MAP_CLASSES.len()]),
+    title: &str,
+    path: &Path,
+) -> CliResult<()> {
+    let n = bands.colours.len();
+    let mut categories: Vec<Category> = bands
+        .colours
+        .iter()
+        .map(|&colour| Category { label: "", colour })
+        .collect();
+    // The cells without a class keep their class-map category, after the bands.
     let others: Vec<usize> = (3..MAP_CLASSES.len()).filter(|&k| counts[k] > 0).collect();
     for &k in &others {
         categories.push(Category {
@@ -231,22 +262,102 @@ fn write_sali_map(
     }
     let codes: Vec<u8> = class_codes
         .iter()
-        .zip(sali)
+        .zip(values)
         .map(|(&c, &v)| match usize::from(c) {
-            // A classified cell always has a SALI (NaN would fall in the lowest band).
-            0..=2 => {
-                let decade = v.max(1e-16).log10().floor() + SALI_DECADES as f64;
-                decade.clamp(0.0, (SALI_DECADES - 1) as f64) as u8
-            }
-            k => (SALI_DECADES + others.iter().position(|&o| o == k).unwrap_or(0)) as u8,
+            // A classified cell always has a value (NaN would fall in the lowest band).
+            0..=2 => (bands.edges.partition_point(|&e| e <= v).max(1) - 1).min(n - 1) as u8,
+            k => (n + others.iter().position(|&o| o == k).unwrap_or(0)) as u8,
         })
         .collect();
     let scale = Scale {
-        label: "log₁₀ SALI",
-        edges: &edges,
+        label: bands.label,
+        edges: bands.edges,
     };
     let map = cell_map(r, &codes, &categories, title, Some(scale));
-    draw(&map, dir, "map")
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    draw(&map, dir, &name)
+}
+
+/// Colours of `n` bands along a perceptually ordered sequential scale from dark violet to
+/// yellow (anchors of the viridis colour map, van der Walt & Smith), for quantities without
+/// class thresholds.
+fn sequential_colours(n: usize) -> Vec<[u8; 3]> {
+    const ANCHORS: [[f64; 3]; 5] = [
+        [68.0, 1.0, 84.0],
+        [59.0, 82.0, 139.0],
+        [33.0, 145.0, 140.0],
+        [94.0, 201.0, 98.0],
+        [253.0, 231.0, 37.0],
+    ];
+    (0..n)
+        .map(|k| {
+            let x = (k as f64 + 0.5) / n as f64 * (ANCHORS.len() - 1) as f64;
+            let i = (x.floor() as usize).min(ANCHORS.len() - 2);
+            let t = x - i as f64;
+            [0, 1, 2]
+                .map(|c| (ANCHORS[i][c] + (ANCHORS[i + 1][c] - ANCHORS[i][c]) * t).round() as u8)
+        })
+        .collect()
+}
+
+/// Band edges of MEGNO's ⟨Y⟩: fine around 2 (quasi-periodic orbits), below it toward 0
+/// (stable periodic ones) and in growing steps above it (chaotic ones, ⟨Y⟩ ≈ λt/2).
+const MEGNO_EDGES: [f64; 20] = [
+    0.0, 0.5, 1.0, 1.5, 1.8, 1.9, 2.0, 2.1, 2.2, 2.5, 3.0, 4.0, 6.0, 10.0, 20.0, 50.0, 100.0,
+    200.0, 500.0, 1000.0,
+];
+
+/// Band edges of the FLI: steps of about a unit where regular orbits lie (≈ ln t), growing
+/// above (chaotic ones, ≈ λt).
+const FLI_EDGES: [f64; 19] = [
+    0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 15.0, 20.0, 30.0, 50.0, 100.0, 200.0,
+    500.0, 1000.0,
+];
+
+/// megno_map, fli_map and mle_map (.png/.svg) of a run with indicators, in `dir`; `values` per
+/// indicator of [`INDICATORS`] (the run's [`RunResult::indicator_values`]).
+pub fn write_indicator_maps(
+    job: &JobSpec,
+    r: &RunResult,
+    values: &[Vec<f64>],
+    dir: &Path,
+) -> CliResult<()> {
+    let title = figure_title(job, r);
+    let (codes, counts) = categories_of(r);
+    let column = |name: &str| {
+        let k = INDICATORS
+            .iter()
+            .position(|(n, _)| *n == name)
+            .expect("a listed indicator");
+        &values[k]
+    };
+    // The mLE in quarter decades from 1e-5 (regular orbits' ln t / t lies below 1e-3 at
+    // t = 1e4, the chaotic sea's λ near 0.05).
+    let mle_edges: Vec<f64> = (0..=18).map(|k| -5.0 + 0.25 * f64::from(k)).collect();
+    let log_mle: Vec<f64> = column("mle").iter().map(|v| v.log10()).collect();
+    let maps: [(&str, &str, &[f64], &[f64]); 3] = [
+        (
+            "megno_map",
+            "MEGNO <Y> (running mean)",
+            &MEGNO_EDGES,
+            column("megno_mean"),
+        ),
+        ("fli_map", "FLI = max ln‖w₁‖", &FLI_EDGES, column("fli")),
+        ("mle_map", "log₁₀ mLE (finite-time)", &mle_edges, &log_mle),
+    ];
+    for (name, label, edges, v) in maps {
+        let colours = sequential_colours(edges.len() - 1);
+        let bands = Bands {
+            label,
+            edges,
+            colours: &colours,
+        };
+        write_banded_map(r, v, &bands, (&codes, &counts), &title, &dir.join(name))?;
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -10,8 +10,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use salient_core::orbit::{Class, Status};
 use salient_grid::{
-    process_cpu_seconds, run_embedded_forecast, takes_forecast, CellRun, Counts, Forecast, Grid,
-    Ledger, Mode, ScanOrder,
+    process_cpu_seconds, run_embedded_forecast, takes_forecast, CellIndicators, CellRun, Counts,
+    Forecast, Grid, Ledger, Mode, ScanOrder,
 };
 use salient_report::{render_lines, write_npy_f64, write_npy_u8, Line, LinePlot, Table};
 use serde_json::{json, Value};
@@ -55,6 +55,8 @@ pub struct RunResult {
     energy_swept: bool,
     /// Whether the sweep runs both modes (the folder's name then says which).
     mode_swept: bool,
+    /// Whether every orbit with a class carries [`CellIndicators`].
+    indicators: bool,
 }
 
 /// `01-tm-sbab2c-tau0.5-t10000`, with `-delta1e-8` for adaptive methods, and after the number
@@ -308,6 +310,55 @@ pub const CLASS_CODE_NAMES: [&str; 6] = [
     "no class",
 ];
 
+/// The per-cell indicators of `integration.indicators`: name (of the cells.csv column, the
+/// .npy file and the results.nc variable) and description.
+pub const INDICATORS: [(&str, &str); 4] = [
+    (
+        "mle",
+        "finite-time maximal Lyapunov exponent (1/t) ln|w1| at t_end",
+    ),
+    ("megno", "MEGNO Y at t_end"),
+    ("megno_mean", "running mean <Y> of MEGNO at t_end"),
+    (
+        "fli",
+        "fast Lyapunov indicator, the largest ln|w1| up to t_end",
+    ),
+];
+
+/// Edges of the ⟨Y⟩ ranges of run.json's `megno_vs_sali`: below 1.5 (near-periodic), around 2
+/// (quasi-periodic), then growing (chaotic: ⟨Y⟩ ≈ λt/2).
+const MEGNO_RANGES: [f64; 4] = [1.5, 2.5, 4.0, 10.0];
+
+/// run.json's `megno_vs_sali` of a run with indicators: per SALI class, its cells counted by
+/// the range of MEGNO's ⟨Y⟩ they fall in ([`MEGNO_RANGES`]), for reading how often the two
+/// indicators agree.
+fn megno_vs_sali(r: &RunResult) -> Option<Value> {
+    let values = r.indicator_values()?;
+    let k = INDICATORS
+        .iter()
+        .position(|(n, _)| *n == "megno_mean")
+        .expect("a listed indicator");
+    let codes = r.class_codes();
+    let mut counts = [[0u64; MEGNO_RANGES.len() + 1]; 3];
+    for (cell, &code) in codes.iter().enumerate() {
+        if (1..=3).contains(&code) {
+            let y = values[k][cell];
+            counts[usize::from(code) - 1][MEGNO_RANGES.partition_point(|&e| e <= y)] += 1;
+        }
+    }
+    Some(json!({
+        "megno_mean_edges": MEGNO_RANGES,
+        "regular": counts[0],
+        "sticky": counts[1],
+        "chaotic": counts[2],
+    }))
+}
+
+/// `v` in the order of [`INDICATORS`].
+pub fn indicator_list(v: &CellIndicators) -> [f64; 4] {
+    [v.mle, v.megno, v.megno_mean, v.fli]
+}
+
 impl RunResult {
     /// Per cell (index order), class.npy's code: 0 incompatible, 1 regular, 2 sticky,
     /// 3 chaotic, 4 escaped, 5 no class for another reason (energy drift, a failed orbit).
@@ -350,6 +401,28 @@ impl RunResult {
         (self.cpu_s, self.wall_s)
     }
 
+    /// Per indicator of [`INDICATORS`], every cell's value in index order (NaN where the cell
+    /// has none), for a run with indicators.
+    pub fn indicator_values(&self) -> Option<Vec<Vec<f64>>> {
+        if !self.indicators {
+            return None;
+        }
+        let g = &self.grid;
+        let mut values = vec![vec![f64::NAN; g.cells()]; INDICATORS.len()];
+        for cell in (0..g.cells() as u32).filter(|&c| g.is_compatible(c)) {
+            let l = self
+                .ledger
+                .label(cell)
+                .expect("every compatible cell is labelled");
+            if let Some(v) = l.indicators {
+                for (k, x) in indicator_list(&v).into_iter().enumerate() {
+                    values[k][cell as usize] = x;
+                }
+            }
+        }
+        Some(values)
+    }
+
     /// The name of the run's folder.
     pub fn dir_name(&self) -> String {
         self.dir
@@ -380,6 +453,7 @@ impl RunResult {
             forecast_from: None,
             energy_swept: job.sweeps_energy(),
             mode_swept: job.sweeps_mode(),
+            indicators: job.cell_run(index).indicators,
             spec: spec.clone(),
             grid,
             ledger,
@@ -466,14 +540,25 @@ fn row_endings(r: &RunResult) -> Vec<Option<String>> {
         .committed
         .par_iter()
         .map(|o| {
-            let text = format!(
-                ",{},{},{},{},{}\n",
+            let mut text = format!(
+                ",{},{},{},{},{}",
                 o.sali,
                 class_str(o.class),
                 o.status.as_str(),
                 o.cell,
                 o.t_end
             );
+            if r.indicators {
+                // Empty fields for an orbit without a class.
+                let values = o.indicators.as_ref().map(indicator_list);
+                for k in 0..INDICATORS.len() {
+                    text.push(',');
+                    if let Some(v) = values {
+                        let _ = write!(text, "{}", v[k]);
+                    }
+                }
+            }
+            text.push('\n');
             (o.cell, text)
         })
         .collect();
@@ -526,7 +611,14 @@ fn write_cells_csv(r: &RunResult, path: &Path) -> CliResult<()> {
         .map(|chunk| csv_rows(r, &text, &endings, chunk))
         .collect();
     let mut csv = String::with_capacity(pieces.iter().map(String::len).sum::<usize>() + 64);
-    csv.push_str("i,j,q2,p2,sali,class,status,label_source,t_end\n");
+    csv.push_str("i,j,q2,p2,sali,class,status,label_source,t_end");
+    if r.indicators {
+        for (name, _) in INDICATORS {
+            csv.push(',');
+            csv.push_str(name);
+        }
+    }
+    csv.push('\n');
     for piece in &pieces {
         csv.push_str(piece);
     }
@@ -565,6 +657,14 @@ fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<(
     write_npy_f64(&dir.join("sali.npy"), &shape, &sali)
         .map_err(|e| runtime("writing sali.npy", e))?;
     crate::maps::write_maps(job, r, &sali, dir)?;
+    if let Some(values) = r.indicator_values() {
+        for ((name, _), v) in INDICATORS.iter().zip(&values) {
+            let file = format!("{name}.npy");
+            write_npy_f64(&dir.join(&file), &shape, v)
+                .map_err(|e| runtime(&format!("writing {file}"), e))?;
+        }
+        crate::maps::write_indicator_maps(job, r, &values, dir)?;
+    }
     crate::dataset::write_results_nc(job, r, &job.source, dir)?;
     let mut run = run_json(r);
     run["spec"] = job.source.clone();
@@ -592,13 +692,14 @@ pub fn mode_name(mode: Mode) -> &'static str {
 fn run_json(r: &RunResult) -> Value {
     let c = &r.counts;
     let (reg, st, ch) = c.percent();
-    json!({
+    let mut run = json!({
         "energy": r.spec.energy,
         "method": r.spec.method.name(),
         "tau": r.spec.tau,
         "delta": r.spec.delta,
         "t_final": r.spec.t_final,
         "mode": mode_name(r.ledger.mode()),
+        "indicators": r.indicators,
         "cells": [r.grid.n_q2, r.grid.n_p2],
         "bounds": { "q2": [r.grid.q2.0, r.grid.q2.1], "p2": [r.grid.p2.0, r.grid.p2.1] },
         "order": r.grid.order.name(),
@@ -614,7 +715,11 @@ fn run_json(r: &RunResult) -> Value {
         "cpu_s": r.cpu_s,
         "wall_s": r.wall_s,
         "out_dir": r.dir.display().to_string(),
-    })
+    });
+    if let Some(table) = megno_vs_sali(r) {
+        run["megno_vs_sali"] = table;
+    }
+    run
 }
 
 /// Statuses without a class besides `escaped`: a column each in the table when any run has

@@ -82,6 +82,7 @@ fn main() {
             steps: 20_000,
             checkpoints: vec![1; checkpoints],
             t_end: 1e4,
+            indicators: None,
         }
     };
     // Fabricated before the clock starts: sorting a visited list is a worker's work, and was a

@@ -10,7 +10,7 @@ use prost::Message;
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::{takes_forecast, Forecast, Grid, Ledger, OutcomeNews};
 use salient_proto::v1;
-use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
+use salient_proto::{outcome_from_wire, Expected, PROTOCOL_VERSION};
 use salient_store::{JobState, Store, StoreError};
 use std::cell::RefCell;
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
@@ -216,7 +216,8 @@ struct Run {
     /// Cells whose own outcome is in the store (the ledger forgets a dropped one, and a resent
     /// report must still change nothing).
     stored: Vec<bool>,
-    checkpoints: usize,
+    /// What each outcome of the run must carry.
+    expected: Expected,
     /// Who is forecast to label each cell (a similar finished run, [`hand_forecast`]): cells
     /// the forecast defers ([`Forecast::defers`]) are leased only once their labeller turns
     /// out not to label them, and the others from anywhere in the grid rather than a window
@@ -348,7 +349,7 @@ impl Run {
             stored: vec![false; grid.cells()],
             forecast: None,
             forecast_from: None,
-            checkpoints: cell_run.checkpoint_steps().len(),
+            expected: Expected::of_run(&cell_run),
             adaptive_orbits_per_thread: match &cell_run.run.method {
                 salient_core::Method::TangentMap(_) => None,
                 m => Some(salient_core::run::adaptive_orbits_per_thread(
@@ -615,7 +616,7 @@ impl Scheduler {
                 let wire = v1::Outcome::decode(stored.data.as_slice())
                     .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
                 let encoded = Bytes::from(stored.data);
-                let o = outcome_from_wire(&wire, &run.grid, run.checkpoints)
+                let o = outcome_from_wire(&wire, &run.grid, run.expected)
                     .map_err(|e| Status::internal(format!("stored outcome: {e}")))?;
                 run.stored[o.cell as usize] = true;
                 run.offer(u64::MAX, encoded, o);
@@ -818,7 +819,7 @@ impl Scheduler {
             }
             let mut checked_report = Vec::with_capacity(r.outcomes.len());
             for o in &r.outcomes {
-                let checked = outcome_from_wire(o, &run.grid, run.checkpoints)
+                let checked = outcome_from_wire(o, &run.grid, run.expected)
                     .map_err(Status::invalid_argument)?;
                 if run.grid.tile_of(checked.cell) != Some(lease.tile as usize) {
                     return Err(Status::invalid_argument(format!(

@@ -7,7 +7,7 @@ use salient_coordinator::scheduler::{Config, Scheduler};
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::{integrate_cells, run_embedded, Label, Ledger, OutcomeNews};
 use salient_proto::v1;
-use salient_proto::{outcome_from_wire, PROTOCOL_VERSION};
+use salient_proto::{outcome_from_wire, Expected, PROTOCOL_VERSION};
 use salient_store::Store;
 use std::collections::HashSet;
 use std::time::Duration;
@@ -57,7 +57,7 @@ fn labels(s: &Scheduler, job: u64) -> Vec<Vec<Option<Label>>> {
             }
             Part::Outcomes(b) => {
                 let sp = spec.as_ref().unwrap();
-                let k = sp.cell_run(b.run as usize).checkpoint_steps().len();
+                let k = Expected::of_run(&sp.cell_run(b.run as usize));
                 for o in &b.outcomes {
                     ledgers[b.run as usize]
                         .offer(outcome_from_wire(o, &sp.grid(b.run as usize), k).unwrap());
@@ -443,7 +443,7 @@ fn outcomes_are_relayed_to_the_other_workers_from_their_marks() {
     let mut mirror = Ledger::new(&sp.grid(0), sp.mode(0));
     mirror.watch_outcomes();
     let mut counting = |outcomes: &[v1::Outcome]| -> Vec<u32> {
-        let k = sp.cell_run(0).checkpoint_steps().len();
+        let k = Expected::of_run(&sp.cell_run(0));
         for o in outcomes {
             mirror.offer(outcome_from_wire(o, &sp.grid(0), k).unwrap());
         }

@@ -61,17 +61,26 @@ fn outcome() -> impl Strategy<Value = v1::Outcome> {
         any::<u64>(),
         proptest::collection::vec(-1i32..5, 0..3),
         prop_oneof![Just(f64::NAN), Just(-1.0), 0.0..100.0f64],
+        proptest::option::of(any::<f64>()),
     )
         .prop_map(
-            |(cell, class, status, sali, visited, steps, checkpoints, t_end)| v1::Outcome {
-                cell,
-                class,
-                status,
-                sali,
-                visited,
-                steps,
-                checkpoints,
-                t_end,
+            |(cell, class, status, sali, visited, steps, checkpoints, t_end, indicator)| {
+                v1::Outcome {
+                    cell,
+                    class,
+                    status,
+                    sali,
+                    visited,
+                    steps,
+                    checkpoints,
+                    t_end,
+                    indicators: indicator.map(|x| v1::CellIndicators {
+                        mle: x,
+                        megno: x,
+                        megno_mean: x,
+                        fli: x,
+                    }),
+                }
             },
         )
 }

@@ -19,6 +19,17 @@ pub enum Mode {
     Full,
 }
 
+/// The finite-time mLE, MEGNO and FLI of a full-mode orbit at its end
+/// (`integration.indicators`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CellIndicators {
+    pub mle: f64,
+    /// MEGNO Y and its running mean ⟨Y⟩.
+    pub megno: f64,
+    pub megno_mean: f64,
+    pub fli: f64,
+}
+
 /// What one orbit produced, as far as the grid is concerned.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Outcome {
@@ -34,6 +45,8 @@ pub struct Outcome {
     pub t_end: f64,
     /// Classes at the run's checkpoints (full mode with checkpoints; empty otherwise).
     pub checkpoints: Vec<Option<Class>>,
+    /// With `integration.indicators`, in full mode, for orbits with a class.
+    pub indicators: Option<CellIndicators>,
 }
 
 /// The label a cell received.
@@ -46,6 +59,7 @@ pub struct Label {
     pub source: u32,
     /// The time that orbit reached (its escape time for `escaped`).
     pub t_end: f64,
+    pub indicators: Option<CellIndicators>,
 }
 
 const COMPATIBLE: u8 = 1;
@@ -263,6 +277,7 @@ impl Ledger {
             sali: o.sali,
             source: o.cell,
             t_end: o.t_end,
+            indicators: o.indicators,
         })
     }
 
@@ -660,6 +675,7 @@ pub fn sequential(
             sali: o.sali,
             source: cell,
             t_end: o.t_end,
+            indicators: o.indicators,
         };
         labels[cell as usize] = Some(label);
         if mode == Mode::FastPss {
@@ -713,6 +729,7 @@ mod tests {
             steps: 100,
             t_end: 1.0,
             checkpoints: Vec::new(),
+            indicators: None,
         }
     }
 

@@ -15,5 +15,5 @@ pub mod summary;
 pub use cpu::process_cpu_seconds;
 pub use executor::{integrate_cells, run_embedded, run_embedded_forecast, takes_forecast, CellRun};
 pub use geometry::{Grid, ScanOrder};
-pub use ledger::{Forecast, Label, Ledger, Mode, Outcome, OutcomeNews};
+pub use ledger::{CellIndicators, Forecast, Label, Ledger, Mode, Outcome, OutcomeNews};
 pub use summary::Counts;

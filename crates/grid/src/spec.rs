@@ -47,7 +47,10 @@ pub const SCHEMA: &[(&str, &[&str])] = &[
         "sweep",
         &["method", "tau", "t_final", "delta", "energy", "mode"],
     ),
-    ("integration", &["protocol", "deviation", "seed"]),
+    (
+        "integration",
+        &["protocol", "deviation", "seed", "indicators"],
+    ),
     (
         "classify",
         &["regular", "chaotic", "early_stop", "energy_drift"],
@@ -101,6 +104,9 @@ pub struct JobSpec {
     pub protocol: Protocol,
     pub deviation: Deviation,
     pub thresholds: Thresholds,
+    /// The finite-time mLE, MEGNO and FLI of every cell of the full-mode runs
+    /// (`integration.indicators`); their orbits run to t_final (no early stop).
+    pub indicators: bool,
     /// Things the user should know but that do not stop the job (a clamped delta, an ignored
     /// field), one line each.
     pub warnings: Vec<String>,
@@ -147,6 +153,7 @@ impl JobSpec {
     /// How every cell's orbit of run `index` is integrated.
     pub fn cell_run(&self, index: usize) -> CellRun {
         let r = &self.runs[index];
+        let indicators = self.indicators && r.mode == Mode::Full;
         CellRun {
             run: MethodRun {
                 method: r.method.clone(),
@@ -156,7 +163,11 @@ impl JobSpec {
             config: OrbitConfig {
                 tau: r.tau,
                 t_final: r.t_final,
-                thresholds: self.thresholds,
+                thresholds: Thresholds {
+                    // Indicators are read at t_final.
+                    early_stop: self.thresholds.early_stop && !indicators,
+                    ..self.thresholds
+                },
                 deviation: self.deviation,
                 escape_radius: None,
             },
@@ -164,6 +175,7 @@ impl JobSpec {
                 Mode::Full => CHECKPOINTS_PER_DECADE,
                 Mode::FastPss => 0,
             },
+            indicators,
         }
     }
 }
@@ -211,6 +223,7 @@ struct RawIntegration {
     protocol: Option<String>,
     deviation: Option<String>,
     seed: Option<u64>,
+    indicators: Option<bool>,
 }
 
 #[derive(Serialize)]
@@ -530,6 +543,7 @@ fn read_raw(v: &Value) -> SpecResult<RawSpec> {
                 protocol: t.opt("protocol", string)?,
                 deviation: t.opt("deviation", string)?,
                 seed: t.opt("seed", seed)?,
+                indicators: t.opt("indicators", boolean)?,
             }),
             None => None,
         },
@@ -903,10 +917,22 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
             "classify.energy_drift must be in (0, 1e300] (got {energy_drift})"
         )));
     }
+    let indicators = integ.and_then(|i| i.indicators).unwrap_or(false);
+    if indicators && !modes.contains(&Mode::Full) {
+        return Err(usage(
+            "integration.indicators = true needs a full-mode run (grid.mode = \"full\", or \"full\" in sweep.mode): fast PSS labels cells by other cells' orbits",
+        ));
+    }
+    let early_stop = c.and_then(|c| c.early_stop);
+    if indicators && early_stop == Some(true) {
+        return Err(usage(
+            "classify.early_stop must be false with integration.indicators = true (the indicators are read at t_final)",
+        ));
+    }
     let thresholds = Thresholds {
         regular,
         chaotic,
-        early_stop: c.and_then(|c| c.early_stop).unwrap_or(defaults.early_stop),
+        early_stop: early_stop.unwrap_or(defaults.early_stop),
         energy_drift,
     };
 
@@ -982,6 +1008,7 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
         protocol,
         deviation,
         thresholds,
+        indicators,
         warnings,
         source,
     })
@@ -1037,6 +1064,36 @@ method = ["tm-sbab2c"]
 tau = [0.05]
 t_final = [1e3]
 "#;
+
+    /// `integration.indicators`: the full-mode runs compute them and run to t_final, the
+    /// fast-PSS runs of a mode sweep keep the early stop; a spec without a full-mode run, or
+    /// with the early stop asked for, is refused.
+    #[test]
+    fn indicators_turn_the_early_stop_off_for_full_mode_runs_only() {
+        let swept = MINIMAL.replace("[sweep]", "[sweep]\nmode = [\"full\", \"fast-pss\"]")
+            + "[integration]\nindicators = true\n";
+        let j = parse(&swept, false).unwrap();
+        assert!(j.indicators);
+        let (full, fast) = (j.cell_run(0), j.cell_run(1));
+        assert!(full.indicators && !full.config.thresholds.early_stop);
+        assert!(!fast.indicators && fast.config.thresholds.early_stop);
+        let fast_only = MINIMAL.to_string() + "[integration]\nindicators = true\n";
+        let e = parse(&fast_only, false).unwrap_err();
+        assert!(e.0.contains("needs a full-mode run"), "{e}");
+        let early = swept.clone() + "[classify]\nearly_stop = true\n";
+        let e = parse(&early, false).unwrap_err();
+        assert!(e.0.contains("classify.early_stop must be false"), "{e}");
+        let off = swept + "[classify]\nearly_stop = false\n";
+        assert!(
+            !parse(&off, false)
+                .unwrap()
+                .cell_run(1)
+                .config
+                .thresholds
+                .early_stop
+        );
+        assert!(!parse(MINIMAL, false).unwrap().cell_run(0).indicators);
+    }
 
     /// `sweep.mode` makes one run per mode, inside the energy axis and outside the others.
     #[test]

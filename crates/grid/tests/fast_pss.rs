@@ -27,6 +27,7 @@ fn tm(scheme: &str, tau: f64, t_final: f64) -> CellRun {
         },
         config: OrbitConfig::new(tau, t_final),
         checkpoints_per_decade: 0,
+        indicators: false,
     }
 }
 
@@ -40,6 +41,7 @@ fn adaptive(method: Method, tau: f64, t_final: f64) -> CellRun {
         },
         config: OrbitConfig::new(tau, t_final),
         checkpoints_per_decade: 0,
+        indicators: false,
     }
 }
 

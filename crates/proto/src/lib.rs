@@ -86,18 +86,54 @@ impl From<&salient_grid::Outcome> for v1::Outcome {
                 .map(|&c| class_to_wire(c) as i32)
                 .collect(),
             t_end: o.t_end,
+            indicators: o.indicators.map(|g| v1::CellIndicators {
+                mle: g.mle,
+                megno: g.megno,
+                megno_mean: g.megno_mean,
+                fli: g.fli,
+            }),
+        }
+    }
+}
+
+/// What a run expects of each outcome besides its grid.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Expected {
+    /// Classes at checkpoints.
+    pub checkpoints: usize,
+    /// Indicators on every orbit with a class.
+    pub indicators: bool,
+}
+
+impl Expected {
+    /// What the outcomes of a run integrated as `cell_run` carry.
+    pub fn of_run(cell_run: &salient_grid::CellRun) -> Expected {
+        Expected {
+            checkpoints: cell_run.checkpoint_steps().len(),
+            indicators: cell_run.indicators,
+        }
+    }
+
+    /// The shape `o` has: for an outcome the coordinator already checked against its run
+    /// (a relay), where only its fit to the grid is left to check.
+    pub fn as_sent(o: &v1::Outcome) -> Expected {
+        Expected {
+            checkpoints: o.checkpoints.len(),
+            indicators: o.indicators.is_some(),
         }
     }
 }
 
 /// Checks an outcome from the wire against the grid it claims to belong to: its cell and
 /// every visited cell compatible and in range, visited cells sorted without repeats, the
-/// number of checkpoints the run expects, and a class consistent with the status.
+/// number of checkpoints the run expects, indicators exactly where it expects them, and a
+/// class consistent with the status.
 pub fn outcome_from_wire(
     o: &v1::Outcome,
     grid: &Grid,
-    checkpoints: usize,
+    expected: Expected,
 ) -> Result<Outcome, String> {
+    let checkpoints = expected.checkpoints;
     let cells = grid.cells() as u32;
     let compatible = |c: u32| c < cells && grid.is_compatible(c);
     if !compatible(o.cell) {
@@ -131,6 +167,13 @@ pub fn outcome_from_wire(
             o.t_end
         ));
     }
+    let wants_indicators = expected.indicators && class.is_some();
+    if o.indicators.is_some() != wants_indicators {
+        return Err(format!(
+            "outcome.indicators must be {} for this orbit",
+            if wants_indicators { "set" } else { "absent" }
+        ));
+    }
     Ok(Outcome {
         cell: o.cell,
         class,
@@ -139,6 +182,12 @@ pub fn outcome_from_wire(
         visited: o.visited.clone(),
         steps: o.steps,
         t_end: o.t_end,
+        indicators: o.indicators.map(|g| salient_grid::CellIndicators {
+            mle: g.mle,
+            megno: g.megno,
+            megno_mean: g.megno_mean,
+            fli: g.fli,
+        }),
         checkpoints: o
             .checkpoints
             .iter()
@@ -239,12 +288,22 @@ mod tests {
             steps: 12345,
             t_end: 987.5,
             checkpoints: vec![None, Some(Class::Regular), Some(Class::Chaotic)],
+            indicators: Some(salient_grid::CellIndicators {
+                mle: 4.5e-4,
+                megno: 2.0123,
+                megno_mean: 1.9871,
+                fli: 9.25,
+            }),
         };
         let mut o = o;
         o.visited.sort_unstable();
         let bytes = v1::Outcome::from(&o).encode_to_vec();
         let back = v1::Outcome::decode(bytes.as_slice()).unwrap();
-        assert_eq!(outcome_from_wire(&back, &g, 3).unwrap(), o);
+        let expected = Expected {
+            checkpoints: 3,
+            indicators: true,
+        };
+        assert_eq!(outcome_from_wire(&back, &g, expected).unwrap(), o);
     }
 
     #[test]
@@ -259,8 +318,13 @@ mod tests {
             steps: 1,
             checkpoints: vec![],
             t_end: 10.0,
+            indicators: None,
         };
-        assert!(outcome_from_wire(&ok, &g, 0).is_ok());
+        let plain = Expected {
+            checkpoints: 0,
+            indicators: false,
+        };
+        assert!(outcome_from_wire(&ok, &g, plain).is_ok());
         let incompatible = (0..100).find(|&c| !g.is_compatible(c)).unwrap();
         let cases: Vec<(v1::Outcome, &str)> = vec![
             (
@@ -333,11 +397,31 @@ mod tests {
                 },
                 "outcome.t_end",
             ),
+            (
+                v1::Outcome {
+                    indicators: Some(v1::CellIndicators::default()),
+                    ..ok.clone()
+                },
+                "outcome.indicators",
+            ),
         ];
         for (o, field) in cases {
-            let e = outcome_from_wire(&o, &g, 0).unwrap_err();
+            let e = outcome_from_wire(&o, &g, plain).unwrap_err();
             assert!(e.contains(field), "{e} does not name {field}");
         }
+        // A run with indicators wants them on every orbit with a class, and only there.
+        let with = Expected {
+            indicators: true,
+            ..plain
+        };
+        let e = outcome_from_wire(&ok, &g, with).unwrap_err();
+        assert!(e.contains("outcome.indicators must be set"), "{e}");
+        let escaped = v1::Outcome {
+            class: class_to_wire(None) as i32,
+            status: status_to_wire(Status::Escaped) as i32,
+            ..ok.clone()
+        };
+        assert!(outcome_from_wire(&escaped, &g, with).is_ok());
     }
 
     /// `Relay.outcomes` as the wire sees it before it became `bytes`.
@@ -367,6 +451,7 @@ mod tests {
                 steps: 100 * k as u64,
                 checkpoints: vec![1, 3],
                 t_end: 1e4,
+                indicators: None,
             })
             .collect();
         let as_bytes = v1::Relay {

@@ -824,6 +824,7 @@ mod tests {
                 steps: 1,
                 t_end: 1.0,
                 checkpoints: Vec::new(),
+                indicators: None,
             });
         }
         let labels = ledger.forecast();

@@ -8,7 +8,7 @@ use crate::world::{Event, World};
 use salient_grid::executor::{Claims, LocalLedger, OrbitTrace, Verdict};
 use salient_grid::Mode;
 use salient_proto::v1;
-use salient_proto::{outcome_from_wire, push_partial};
+use salient_proto::{outcome_from_wire, push_partial, Expected};
 use salient_worker::{crossings_of_held, free_slots, lease_key, LeaseKey};
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::sync::Arc;
@@ -316,7 +316,7 @@ impl SimWorker {
             for encoded in &relay.outcomes {
                 let o = <v1::Outcome as prost::Message>::decode(&encoded[..])
                     .map_err(|e| e.to_string())?;
-                let o = outcome_from_wire(&o, r.local.grid(), o.checkpoints.len())?;
+                let o = outcome_from_wire(&o, r.local.grid(), Expected::as_sent(&o))?;
                 r.local.offer(o);
             }
             r.relayed = relay.next;

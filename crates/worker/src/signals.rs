@@ -5,8 +5,8 @@
 use salient_grid::executor::LocalLedger;
 use salient_grid::spec::JobSpec;
 use salient_grid::Grid;
-use salient_proto::outcome_from_wire;
 use salient_proto::v1;
+use salient_proto::{outcome_from_wire, Expected};
 use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, Mutex};
 
@@ -107,7 +107,7 @@ pub(crate) fn apply_relay(local: &LocalLedger, relay: &v1::Relay) {
     for encoded in &relay.outcomes {
         let checked = <v1::Outcome as prost::Message>::decode(&encoded[..])
             .map_err(|e| e.to_string())
-            .and_then(|o| outcome_from_wire(&o, local.grid(), o.checkpoints.len()));
+            .and_then(|o| outcome_from_wire(&o, local.grid(), Expected::as_sent(&o)));
         match checked {
             Ok(o) => local.offer(o),
             Err(e) => {

@@ -17,7 +17,7 @@ pub use embedded::{run_embedded, run_embedded_forecast, takes_forecast};
 pub use stream::{integrate_stream, tells_crossings, CellSource, Take, Verdict};
 
 use crate::geometry::Grid;
-use crate::ledger::{Mode, Outcome};
+use crate::ledger::{CellIndicators, Mode, Outcome};
 use salient_core::batch::{BatchFeed, Isa};
 use salient_core::method::Method;
 use salient_core::orbit::{
@@ -66,6 +66,8 @@ pub struct CellRun {
     pub config: OrbitConfig,
     /// Log-spaced checkpoints per decade at which full-mode orbits are also classified (0: none).
     pub checkpoints_per_decade: u32,
+    /// The finite-time mLE, MEGNO and FLI of every orbit (full mode only).
+    pub indicators: bool,
 }
 
 impl CellRun {
@@ -121,6 +123,12 @@ fn outcome(
         steps: r.steps,
         t_end: r.t_reached,
         checkpoints: classes,
+        indicators: r.growth.map(|g| CellIndicators {
+            mle: r.mle,
+            megno: g.megno,
+            megno_mean: g.megno_mean,
+            fli: g.fli,
+        }),
     }
 }
 fn initial_point(grid: &Grid, cell: u32) -> ([f64; 2], [f64; 2]) {
@@ -133,6 +141,7 @@ fn requests_for(cell_run: &CellRun, mode: Mode) -> Requests {
     Requests {
         crossings: mode == Mode::FastPss,
         samples_per_decade: cell_run.checkpoints_per_decade,
+        growth: cell_run.indicators && mode == Mode::Full,
         ..Requests::default()
     }
 }
