@@ -15,8 +15,12 @@ fn readme() -> String {
 const NEED_A_COORDINATOR: &[&str] = &["coordinator", "worker", "submit", "watch", "results"];
 
 /// Specs of examples too long for a test (Table 2 for hours, the grid comparison's references
-/// for minutes): parsed instead.
-const TOO_LONG: &[&str] = &["examples/table2.toml", "examples/grid-precision.toml"];
+/// and the 200×200 MEGNO map for minutes): parsed instead.
+const TOO_LONG: &[&str] = &[
+    "examples/table2.toml",
+    "examples/grid-precision.toml",
+    "examples/megno-200.toml",
+];
 
 #[test]
 fn every_salient_example_in_the_readme_runs() {
