@@ -3,7 +3,8 @@
 # (the four methods together: every run after the first takes the labellers of the run before
 # it as a scheduling forecast, same results with far less speculative work). Each sweep writes
 # its own folder, and a sweep whose folder holds its table.json is finished and skipped, so the
-# script can be stopped at any time and run again to go on where it stopped.
+# script can be stopped at any time and run again to go on where it stopped (a sweep stopped part
+# way resumes from its checkpoint: `salient run --resume`).
 #
 #   scripts/reproduce-table2.sh [OPTIONS] [METHOD [T_FINAL]]
 #
@@ -110,9 +111,16 @@ for check in $checks; do
         echo "finished already: $dir" >&2
         continue
       fi
-      echo "running: $dir" >&2
+      # A sweep stopped part way goes on from its checkpoint.
+      resume=()
+      if [ -d "$dir/.salient-checkpoint" ]; then
+        resume=(--resume)
+        echo "resuming: $dir" >&2
+      else
+        echo "running: $dir" >&2
+      fi
       spec_of "$tau" "$t" "$check" > "$spec"
-      "$bin" run "$spec" --out "$dir"
+      "$bin" run "$spec" --out "$dir" "${resume[@]}"
     done
   done
 done

@@ -56,11 +56,13 @@ pub fn write_spec(dir: &Path, name: &str, text: &str) -> String {
     p.to_str().expect("a UTF-8 path").to_string()
 }
 
-/// The run folders of an output folder, sorted (`01-…`, `02-…`).
+/// The run folders of an output folder, sorted (`01-…`, `02-…`); hidden folders (a staging
+/// folder, a checkpoint) are not runs.
 pub fn run_dirs(out: &Path) -> Vec<PathBuf> {
     let mut dirs: Vec<PathBuf> = std::fs::read_dir(out)
         .expect("the output folder")
         .flatten()
+        .filter(|e| !e.file_name().to_string_lossy().starts_with('.'))
         .map(|e| e.path())
         .filter(|p| p.is_dir())
         .collect();

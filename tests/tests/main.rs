@@ -16,6 +16,7 @@ mod plain_c_cli;
 mod precision_cli;
 mod readme_cli;
 mod results_nc_cli;
+mod resume_cli;
 mod run_cli;
 mod simulate_cli;
 mod soak_cli;

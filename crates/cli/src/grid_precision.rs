@@ -218,7 +218,7 @@ fn cached_run(job: &JobSpec, cache: &Path, threads: usize) -> CliResult<Referenc
         dir.display()
     );
     let staged = Staged::begin(&dir, "--cache")?;
-    let results = run_sweep(job, threads, &dir, Some(staged.path()))?;
+    let results = run_sweep(job, threads, &dir, Some(staged.path()), None)?;
     let run = &results[0];
     let (cpu_s, wall_s) = run.cost();
     let meta = json!({
@@ -294,7 +294,7 @@ pub fn run(req: GridRequest) -> CliResult<()> {
         .map(|d| Staged::begin(d, "--out"))
         .transpose()?;
     let out = req.out.clone().unwrap_or_default();
-    let results = run_sweep(&job, threads, &out, staged.as_ref().map(|s| s.path()))?;
+    let results = run_sweep(&job, threads, &out, staged.as_ref().map(|s| s.path()), None)?;
     let (references, rows) = compare_all(&job, &results, given, &cache, threads, req.fast_vs_full)?;
     let table = comparison_table(&job, &results, &references, &rows);
     let summary = summary_json(&job, &results, &references, &rows);

@@ -3,6 +3,7 @@
 //! Everything but the binary's entry point is this library: it needs only the metadata of the
 //! crates it calls, so it compiles while salient-core's engines are still being optimised.
 
+mod checkpoint;
 #[cfg(feature = "distributed")]
 mod client;
 #[cfg(feature = "distributed")]

@@ -84,6 +84,18 @@ impl Staged {
     }
 }
 
+/// Moves the folders staged in `stage` (finished runs) into `out` and removes `stage` with
+/// whatever else it holds: for a process stopped by a signal, which keeps what it finished
+/// but writes no tables (they would say the sweep finished).
+pub fn publish_folders(stage: &Path, out: &Path) -> CliResult<()> {
+    for (name, is_dir) in list(stage)? {
+        if is_dir {
+            move_tree(&stage.join(&name), &out.join(&name))?;
+        }
+    }
+    std::fs::remove_dir_all(stage).map_err(|e| runtime(&format!("removing {}", stage.display()), e))
+}
+
 impl Drop for Staged {
     fn drop(&mut self) {
         if !self.published {

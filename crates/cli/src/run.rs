@@ -1,6 +1,7 @@
 //! `salient run SPEC.toml`: every member of the sweep on this machine's cores, with the same
 //! ledger and tile executor the distributed mode uses.
 
+use crate::checkpoint::{files_lock, Checkpoint, RunSaver};
 use crate::human::rounded;
 use crate::output::Staged;
 use crate::spec::{self, JobSpec, RunSpec};
@@ -10,8 +11,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use salient_core::orbit::{Class, Status};
 use salient_grid::{
-    process_cpu_seconds, run_embedded_forecast, takes_forecast, CellIndicators, CellRun, Counts,
-    Forecast, Grid, Ledger, Mode, ScanOrder,
+    process_cpu_seconds, run_embedded_resumed, takes_forecast, CellIndicators, CellRun, Counts,
+    Forecast, Grid, Ledger, Mode, Outcome, ScanOrder,
 };
 use salient_report::{render_lines, write_npy_f64, write_npy_u8, Line, LinePlot, Table};
 use serde_json::{json, Value};
@@ -33,6 +34,13 @@ pub struct RunArgs {
     /// Print exactly one JSON object on stdout.
     #[arg(long)]
     json: bool,
+    /// Go on from the checkpoint an interrupted `salient run` of the same spec left in the
+    /// output folder (runs it had finished are not integrated again).
+    #[arg(long)]
+    resume: bool,
+    /// Seconds between checkpoints of the committed outcomes (0: after every commit).
+    #[arg(long, default_value_t = 10.0)]
+    checkpoint_every: f64,
     /// Refuse specs whose grid holds more cells than this.
     #[arg(long, default_value_t = spec::MAX_CELLS)]
     max_cells: usize,
@@ -103,9 +111,31 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         .out
         .clone()
         .unwrap_or_else(|| Path::new("out").join(&job.name));
+    if !(args.checkpoint_every >= 0.0 && args.checkpoint_every <= 1e6) {
+        return Err(CliError::Usage(format!(
+            "--checkpoint-every must be in 0..=1e6 seconds (got {})",
+            args.checkpoint_every
+        )));
+    }
     let staged = Staged::begin(&out, "--out")?;
-    let results = run_sweep(&job, threads, &out, Some(staged.path()))?;
-    write_sweep(&results, Some((&out, staged)), None, args.json)
+    let (checkpoint, committed) = Checkpoint::open(&out, &job, args.resume)?;
+    crate::checkpoint::stop_on_signals(staged.path(), &out)?;
+    let resume = Resume {
+        checkpoint: &checkpoint,
+        committed,
+        every: Duration::from_secs_f64(args.checkpoint_every),
+    };
+    let results = run_sweep(&job, threads, &out, Some(staged.path()), Some(resume))?;
+    write_sweep(&results, Some((&out, staged)), None, args.json)?;
+    checkpoint.remove()
+}
+
+/// A sweep's checkpoint: where its runs' committed outcomes are saved, those an interrupted
+/// process saved (per run), and how often to save.
+pub struct Resume<'a> {
+    pub checkpoint: &'a Checkpoint,
+    pub committed: Vec<Vec<Outcome>>,
+    pub every: Duration,
 }
 
 /// Runs every member of the sweep on `threads` threads, in order, each folder written into
@@ -115,6 +145,7 @@ pub fn run_sweep(
     threads: usize,
     out: &Path,
     stage: Option<&Path>,
+    mut resume: Option<Resume<'_>>,
 ) -> CliResult<Vec<RunResult>> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
@@ -139,8 +170,17 @@ pub fn run_sweep(
             })
             .flatten();
         let forecast = similar.map(|p| (p.ledger.forecast(), p.dir_name()));
-        let result = pool.install(|| run_one(job, index, r, threads, out, forecast))?;
+        let saving = resume.as_mut().map(|s| {
+            let done = std::mem::take(&mut s.committed[index]);
+            (
+                RunSaver::new(s.checkpoint, index, done.len(), s.every),
+                done,
+            )
+        });
+        let result = pool.install(|| run_one(job, index, r, threads, out, forecast, saving))?;
         if let Some(stage) = stage {
+            // A stop waits for the folder to be whole.
+            let _files = files_lock();
             pool.install(|| write_run(job, &result, stage))?;
         }
         results.push(result);
@@ -208,6 +248,7 @@ fn run_one(
     threads: usize,
     out: &Path,
     forecast: Option<(Forecast, String)>,
+    saving: Option<(RunSaver<'_>, Vec<Outcome>)>,
 ) -> CliResult<RunResult> {
     let grid = job.grid(index);
     let mode = job.mode(index);
@@ -241,7 +282,15 @@ fn run_one(
     let mut last_log = Instant::now();
     let mut last_bar: Option<Instant> = None;
     let hint = forecast.as_ref().map(|(f, _)| f);
-    let ledger = run_embedded_forecast(&grid, &cell_run, mode, window, hint, |l| {
+    let (mut saver, done) = saving.map_or((None, Vec::new()), |(s, d)| (Some(s), d));
+    if !done.is_empty() {
+        tracing::info!(run = %label, orbits = done.len(), "resumed from the checkpoint");
+    }
+    let mut save_error = None;
+    let ledger = run_embedded_resumed(&grid, &cell_run, mode, window, hint, done, |l| {
+        if let (Some(s), None) = (saver.as_mut(), &save_error) {
+            save_error = s.tick(l).err();
+        }
         let resolved = l.resolved() as u64;
         let orbits = l.committed.len();
         let elapsed = start.elapsed().as_secs_f64();
@@ -272,6 +321,13 @@ fn run_one(
     });
     if let Some(b) = bar {
         b.finish_and_clear();
+    }
+    if let Some(e) = save_error {
+        return Err(e);
+    }
+    // The whole run in the checkpoint: a stop in a later run does not integrate it again.
+    if let Some(s) = saver.as_mut() {
+        s.finish(&ledger)?;
     }
     let wall_s = start.elapsed().as_secs_f64();
     let cpu_s = process_cpu_seconds() - cpu0;

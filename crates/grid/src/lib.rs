@@ -9,11 +9,15 @@ pub mod executor;
 pub mod geometry;
 pub mod ledger;
 mod pages;
+pub mod record;
 pub mod spec;
 pub mod summary;
 
 pub use cpu::process_cpu_seconds;
-pub use executor::{integrate_cells, run_embedded, run_embedded_forecast, takes_forecast, CellRun};
+pub use executor::{
+    integrate_cells, run_embedded, run_embedded_forecast, run_embedded_resumed, takes_forecast,
+    CellRun,
+};
 pub use geometry::{Grid, ScanOrder};
 pub use ledger::{CellIndicators, Forecast, Label, Ledger, Mode, Outcome, OutcomeNews};
 pub use summary::Counts;

@@ -4,7 +4,7 @@
 use super::initial_point;
 use super::{drive, drive_adaptive, integrate_cells, outcome, requests_for, CellRun, Claims};
 use crate::geometry::Grid;
-use crate::ledger::{Forecast, Ledger, Mode};
+use crate::ledger::{Forecast, Ledger, Mode, Outcome};
 use salient_core::batch::{BatchFeed, Feed};
 use salient_core::method::Method;
 use salient_core::orbit::OrbitResult;
@@ -414,7 +414,31 @@ pub fn run_embedded_forecast(
     forecast: Option<&Forecast>,
     mut progress: impl FnMut(&Ledger) + Send,
 ) -> Ledger {
-    run_embedded_with(grid, cell_run, mode, window, forecast, &mut progress)
+    let start = Vec::new();
+    run_embedded_with(grid, cell_run, mode, window, forecast, start, &mut progress)
+}
+
+/// [`run_embedded_forecast`] going on from `committed`: outcomes an earlier process committed
+/// for this run (its checkpoint), offered to the ledger before any orbit runs. Their cells are
+/// never integrated again, and the labels are those of an uninterrupted run.
+pub fn run_embedded_resumed(
+    grid: &Grid,
+    cell_run: &CellRun,
+    mode: Mode,
+    window: usize,
+    forecast: Option<&Forecast>,
+    committed: Vec<Outcome>,
+    mut progress: impl FnMut(&Ledger) + Send,
+) -> Ledger {
+    run_embedded_with(
+        grid,
+        cell_run,
+        mode,
+        window,
+        forecast,
+        committed,
+        &mut progress,
+    )
 }
 
 /// [`run_embedded_forecast`] for any progress callback: the engines are compiled once, here,
@@ -425,11 +449,15 @@ fn run_embedded_with(
     mode: Mode,
     window: usize,
     forecast: Option<&Forecast>,
+    committed: Vec<Outcome>,
     progress: &mut (dyn FnMut(&Ledger) + Send),
 ) -> Ledger {
     let streaming = mode == Mode::FastPss && cell_run.checkpoints_per_decade == 0;
     if !streaming {
         let mut ledger = Ledger::new(grid, mode);
+        for o in committed {
+            ledger.offer(o);
+        }
         while !ledger.done() {
             let cells = ledger.needed(window.max(1), &|_| false);
             for o in integrate_cells(grid, cell_run, mode, &cells) {
@@ -443,6 +471,10 @@ fn run_embedded_with(
     // side by side (figures: docs/performance.md).
     let (claims, mut ledger) = rayon::join(|| Claims::new(grid), || Ledger::new(grid, mode));
     ledger.track_claim_changes();
+    for o in committed {
+        ledger.offer(o);
+    }
+    claims.sync(&mut ledger);
     let shared = Mutex::new(Shared { ledger, progress });
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();

@@ -13,7 +13,7 @@ mod stream;
 
 pub use cells::{integrate_cells, trace_cells, OrbitTrace};
 pub use claims::{Claims, LocalLedger};
-pub use embedded::{run_embedded, run_embedded_forecast, takes_forecast};
+pub use embedded::{run_embedded, run_embedded_forecast, run_embedded_resumed, takes_forecast};
 pub use stream::{integrate_stream, tells_crossings, CellSource, Take, Verdict};
 
 use crate::geometry::Grid;
