@@ -124,3 +124,66 @@ fn each_cell_of_the_class_map_is_drawn_in_its_class_colour() {
     let map_svg = std::fs::read_to_string(run.join("map.svg")).unwrap();
     assert!(map_svg.contains("log₁₀ SALI"));
 }
+
+/// `--dpi 300`: the map's PNG three times as large each way, with its resolution recorded, and
+/// every cell in its colour where the default map has it; a resolution out of range is refused.
+#[test]
+fn maps_at_another_resolution_keep_their_layout() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = write_spec(dir.path(), "maps.toml", SPEC);
+    let (out, fine) = (dir.path().join("out"), dir.path().join("fine"));
+    run_embedded(&spec, &out);
+    let done = salient_tests::salient(&[
+        "run",
+        &spec,
+        "--dpi",
+        "300",
+        "--out",
+        fine.to_str().unwrap(),
+    ]);
+    assert!(done.status.success());
+    let (rgb, width) = decode(&run_dirs(&out).remove(0).join("class_map.png"));
+    let file = std::fs::File::open(run_dirs(&fine).remove(0).join("class_map.png")).unwrap();
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file))
+        .read_info()
+        .unwrap();
+    let info = reader.info();
+    assert_eq!(
+        (info.width, info.height),
+        (3 * CELL_MAP_SIZE.0, 3 * CELL_MAP_SIZE.1)
+    );
+    let dims = info.pixel_dims.expect("the resolution is recorded");
+    assert_eq!((dims.xppu, dims.unit), (11_811, png::Unit::Meter));
+    let mut big = vec![0; reader.output_buffer_size()];
+    reader.next_frame(&mut big).unwrap();
+    let codes = vec![0u8; 40 * 40];
+    let layout = CellMap {
+        codes: &codes,
+        categories: &[salient_report::Category {
+            label: "",
+            colour: [0; 3],
+        }],
+        nx: 40,
+        ny: 40,
+        x_range: (0.0, 1.0),
+        y_range: (0.0, 1.0),
+        title: "layout",
+        x_label: "q₂",
+        y_label: "p₂",
+        scale: None,
+    };
+    let pixels = layout.cell_pixels().unwrap();
+    for i in 0..40 {
+        for j in 0..40 {
+            let (x, y) = pixels.centre(i, j);
+            let k = 3 * (y as usize * width as usize + x as usize);
+            let (bx, by) = (3 * x as usize + 1, 3 * y as usize + 1);
+            let kb = 3 * (by * 3 * width as usize + bx);
+            assert_eq!(big[kb..kb + 3], rgb[k..k + 3], "cell ({i}, {j})");
+        }
+    }
+    let refused =
+        salient_tests::salient(&["run", &spec, "--dpi", "20", "--out", fine.to_str().unwrap()]);
+    assert_eq!(refused.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--dpi must be in 50..=600"));
+}

@@ -16,6 +16,7 @@ use salient_proto::v1::client_service_client::ClientServiceClient;
 use salient_proto::{
     endpoint, explain_transport, outcome_from_wire, Expected, Token, MAX_MESSAGE_BYTES,
 };
+use salient_report::CELL_MAP_DPI;
 use std::error::Error;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -96,6 +97,9 @@ pub struct ResultsArgs {
     /// Output folder (default: out/<spec name>); the same files as `salient run`.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Resolution of the maps' PNG files (50..=600), as `salient run --dpi`.
+    #[arg(long, default_value_t = CELL_MAP_DPI)]
+    dpi: u32,
     /// Print exactly one JSON object on stdout.
     #[arg(long)]
     json: bool,
@@ -209,7 +213,7 @@ pub fn submit(args: SubmitArgs) -> CliResult<()> {
             return Ok(());
         }
         wait_finished(&mut client, reply.job).await?;
-        fetch_and_write(&mut client, reply.job, staged, true).await
+        fetch_and_write(&mut client, reply.job, staged, CELL_MAP_DPI, true).await
     })
 }
 
@@ -506,6 +510,7 @@ pub fn results(args: ResultsArgs) -> CliResult<()> {
             None => Path::new("out").join(known_job(&mut client, args.job).await?.name),
         };
         // Checked before waiting: a folder that cannot be written fails now, not after the job.
+        let dpi = crate::run::map_dpi(args.dpi)?;
         let staged = Staged::begin(&out, "--out")?;
         if args.wait {
             wait_finished(&mut client, args.job).await?;
@@ -518,7 +523,7 @@ pub fn results(args: ResultsArgs) -> CliResult<()> {
                 )));
             }
         }
-        fetch_and_write(&mut client, args.job, Some((out, staged)), args.json).await
+        fetch_and_write(&mut client, args.job, Some((out, staged)), dpi, args.json).await
     })
 }
 
@@ -528,6 +533,7 @@ async fn fetch_and_write(
     client: &mut Client,
     job: u64,
     to: Option<(PathBuf, Staged)>,
+    dpi: u32,
     json: bool,
 ) -> CliResult<()> {
     use v1::results_chunk::Part;
@@ -595,7 +601,7 @@ async fn fetch_and_write(
             to.as_ref().map_or(Path::new(""), |(out, _)| out.as_path()),
         );
         if let Some((_, staged)) = &to {
-            write_run(&job_spec, &r, staged.path())?;
+            write_run(&job_spec, &r, staged.path(), dpi)?;
         }
         results.push(r);
     }

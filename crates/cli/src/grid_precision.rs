@@ -7,7 +7,7 @@ use crate::output::{print_result, write_tables, Staged};
 use crate::run::{mode_name, run_sweep, thread_count, RunResult, CLASS_CODE_NAMES};
 use crate::spec::{self, JobSpec, Mode};
 use crate::usage::{runtime, CliError, CliResult};
-use salient_report::{read_npy_u8, render_loglog, HLine, Line, LogLogPlot, Table};
+use salient_report::{read_npy_u8, render_loglog, HLine, Line, LogLogPlot, Table, CELL_MAP_DPI};
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -218,7 +218,13 @@ fn cached_run(job: &JobSpec, cache: &Path, threads: usize) -> CliResult<Referenc
         dir.display()
     );
     let staged = Staged::begin(&dir, "--cache")?;
-    let results = run_sweep(job, threads, &dir, Some(staged.path()), None)?;
+    let results = run_sweep(
+        job,
+        threads,
+        &dir,
+        Some((staged.path(), CELL_MAP_DPI)),
+        None,
+    )?;
     let run = &results[0];
     let (cpu_s, wall_s) = run.cost();
     let meta = json!({
@@ -294,7 +300,13 @@ pub fn run(req: GridRequest) -> CliResult<()> {
         .map(|d| Staged::begin(d, "--out"))
         .transpose()?;
     let out = req.out.clone().unwrap_or_default();
-    let results = run_sweep(&job, threads, &out, staged.as_ref().map(|s| s.path()), None)?;
+    let results = run_sweep(
+        &job,
+        threads,
+        &out,
+        staged.as_ref().map(|s| (s.path(), CELL_MAP_DPI)),
+        None,
+    )?;
     let (references, rows) = compare_all(&job, &results, given, &cache, threads, req.fast_vs_full)?;
     let table = comparison_table(&job, &results, &references, &rows);
     let summary = summary_json(&job, &results, &references, &rows);

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use salient_core::orbit::{Class, Status};
 use salient_grid::Mode;
-use salient_report::{render_cell_map, Category, CellMap, Scale};
+use salient_report::{render_cell_map_at, Category, CellMap, Scale};
 
 use crate::run::{RunResult, INDICATORS};
 use crate::spec::JobSpec;
@@ -93,7 +93,13 @@ fn categories_of(r: &RunResult) -> (Vec<u8>, [u64; MAP_CLASSES.len()]) {
 
 /// class_map.png/.svg and map.png/.svg of one run, in `dir`; `sali` per cell (NaN where a
 /// cell has none).
-pub fn write_maps(job: &JobSpec, r: &RunResult, sali: &[f64], dir: &Path) -> CliResult<()> {
+pub fn write_maps(
+    job: &JobSpec,
+    r: &RunResult,
+    sali: &[f64],
+    dir: &Path,
+    dpi: u32,
+) -> CliResult<()> {
     let title = figure_title(job, r);
     let (codes, counts) = categories_of(r);
     let compatible: u64 = counts.iter().sum::<u64>() - counts[usize::from(FORBIDDEN)];
@@ -127,8 +133,16 @@ pub fn write_maps(job: &JobSpec, r: &RunResult, sali: &[f64], dir: &Path) -> Cli
     }
     let shown_codes: Vec<u8> = codes.iter().map(|&c| index[usize::from(c)]).collect();
     let map = cell_map(r, &shown_codes, &categories, &title, None);
-    draw(&map, dir, "class_map")?;
-    write_sali_map(job, r, sali, (&codes, &counts), &title, dir)
+    draw(&map, dir, "class_map", dpi)?;
+    write_sali_map(
+        job,
+        r,
+        sali,
+        (&codes, &counts),
+        &title,
+        &dir.join("map"),
+        dpi,
+    )
 }
 
 /// A map of `r`'s grid.
@@ -154,11 +168,11 @@ fn cell_map<'a>(
     }
 }
 
-/// `name`.png and `name`.svg of `map` in `dir`.
-fn draw(map: &CellMap, dir: &Path, name: &str) -> CliResult<()> {
+/// `name`.png (at `dpi`) and `name`.svg of `map` in `dir`.
+fn draw(map: &CellMap, dir: &Path, name: &str, dpi: u32) -> CliResult<()> {
     for ext in ["png", "svg"] {
         let file = format!("{name}.{ext}");
-        render_cell_map(map, &dir.join(&file))
+        render_cell_map_at(map, &dir.join(&file), dpi)
             .map_err(|e| runtime(&format!("drawing {file}"), e))?;
     }
     Ok(())
@@ -210,7 +224,8 @@ fn write_sali_map(
     sali: &[f64],
     classes: (&[u8], &[u64; MAP_CLASSES.len()]),
     title: &str,
-    dir: &Path,
+    path: &Path,
+    dpi: u32,
 ) -> CliResult<()> {
     let edges: Vec<f64> = (0..=SALI_DECADES)
         .map(|k| k as f64 - SALI_DECADES as f64)
@@ -225,7 +240,7 @@ fn write_sali_map(
         edges: &edges,
         colours: &colours,
     };
-    write_banded_map(r, &log_sali, &bands, classes, title, &dir.join("map"))
+    write_banded_map(r, &log_sali, &bands, classes, title, (path, dpi))
 }
 
 /// A quantity in bands: `colours[k]` for the values from `edges[k]` to `edges[k + 1]`, values
@@ -244,7 +259,7 @@ fn write_banded_map(
     bands: &Bands,
     (class_codes, counts): (&[u8], &[u64; MAP_CLASSES.len()]),
     title: &str,
-    path: &Path,
+    (path, dpi): (&Path, u32),
 ) -> CliResult<()> {
     let n = bands.colours.len();
     let mut categories: Vec<Category> = bands
@@ -278,7 +293,7 @@ fn write_banded_map(
     let name = path
         .file_name()
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-    draw(&map, dir, &name)
+    draw(&map, dir, &name, dpi)
 }
 
 /// Colours of `n` bands along a perceptually ordered sequential scale from dark violet to
@@ -324,6 +339,7 @@ pub fn write_indicator_maps(
     r: &RunResult,
     values: &[Vec<f64>],
     dir: &Path,
+    dpi: u32,
 ) -> CliResult<()> {
     let title = figure_title(job, r);
     let (codes, counts) = categories_of(r);
@@ -355,7 +371,8 @@ pub fn write_indicator_maps(
             edges,
             colours: &colours,
         };
-        write_banded_map(r, v, &bands, (&codes, &counts), &title, &dir.join(name))?;
+        let to = (dir.join(name), dpi);
+        write_banded_map(r, v, &bands, (&codes, &counts), &title, (&to.0, to.1))?;
     }
     Ok(())
 }

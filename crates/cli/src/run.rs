@@ -14,7 +14,10 @@ use salient_grid::{
     process_cpu_seconds, run_embedded_resumed, takes_forecast, CellIndicators, CellRun, Counts,
     Forecast, Grid, Ledger, Mode, Outcome, ScanOrder,
 };
-use salient_report::{render_lines, write_npy_f64, write_npy_u8, Line, LinePlot, Table};
+use salient_report::{
+    render_lines, write_npy_f64, write_npy_u8, Line, LinePlot, Table, CELL_MAP_DPI,
+    CELL_MAP_DPI_RANGE,
+};
 use serde_json::{json, Value};
 use std::fmt::Write as _;
 use std::io::IsTerminal;
@@ -38,6 +41,9 @@ pub struct RunArgs {
     /// output folder (runs it had finished are not integrated again).
     #[arg(long)]
     resume: bool,
+    /// Resolution of the maps' PNG files (50..=600; the SVG files scale without loss).
+    #[arg(long, default_value_t = CELL_MAP_DPI)]
+    dpi: u32,
     /// Seconds between checkpoints of the committed outcomes (0: after every commit).
     #[arg(long, default_value_t = 10.0)]
     checkpoint_every: f64,
@@ -92,6 +98,19 @@ fn run_dir_name(index: usize, r: &RunSpec, (with_energy, with_mode): (bool, bool
     s
 }
 
+/// `--dpi`: the maps' PNG resolution, in [`CELL_MAP_DPI_RANGE`].
+pub fn map_dpi(dpi: u32) -> CliResult<u32> {
+    if CELL_MAP_DPI_RANGE.contains(&dpi) {
+        Ok(dpi)
+    } else {
+        Err(CliError::Usage(format!(
+            "--dpi must be in {}..={} (got {dpi})",
+            CELL_MAP_DPI_RANGE.start(),
+            CELL_MAP_DPI_RANGE.end()
+        )))
+    }
+}
+
 /// `--threads`: 1..=1024, every core when absent.
 pub fn thread_count(threads: Option<usize>) -> CliResult<usize> {
     match threads {
@@ -125,7 +144,14 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         committed,
         every: Duration::from_secs_f64(args.checkpoint_every),
     };
-    let results = run_sweep(&job, threads, &out, Some(staged.path()), Some(resume))?;
+    let dpi = map_dpi(args.dpi)?;
+    let results = run_sweep(
+        &job,
+        threads,
+        &out,
+        Some((staged.path(), dpi)),
+        Some(resume),
+    )?;
     write_sweep(&results, Some((&out, staged)), None, args.json)?;
     checkpoint.remove()
 }
@@ -144,7 +170,7 @@ pub fn run_sweep(
     job: &JobSpec,
     threads: usize,
     out: &Path,
-    stage: Option<&Path>,
+    stage: Option<(&Path, u32)>,
     mut resume: Option<Resume<'_>>,
 ) -> CliResult<Vec<RunResult>> {
     let pool = rayon::ThreadPoolBuilder::new()
@@ -178,10 +204,10 @@ pub fn run_sweep(
             )
         });
         let result = pool.install(|| run_one(job, index, r, threads, out, forecast, saving))?;
-        if let Some(stage) = stage {
+        if let Some((stage, dpi)) = stage {
             // A stop waits for the folder to be whole.
             let _files = files_lock();
-            pool.install(|| write_run(job, &result, stage))?;
+            pool.install(|| write_run(job, &result, stage, dpi))?;
         }
         results.push(result);
     }
@@ -684,19 +710,19 @@ fn write_cells_csv(r: &RunResult, path: &Path) -> CliResult<()> {
 /// cells.csv, class.npy, sali.npy, the maps and run.json of one run, in its folder under
 /// `stage` (the staging folder of the output folder); cells.csv is written beside the rest on
 /// the current rayon pool.
-pub fn write_run(job: &JobSpec, r: &RunResult, stage: &Path) -> CliResult<()> {
+pub fn write_run(job: &JobSpec, r: &RunResult, stage: &Path, dpi: u32) -> CliResult<()> {
     let dir = &stage.join(r.dir_name());
     std::fs::create_dir_all(dir).map_err(|e| runtime(&format!("creating {}", dir.display()), e))?;
     let (csv, rest) = rayon::join(
         || write_cells_csv(r, &dir.join("cells.csv")),
-        || write_arrays_and_map(job, r, dir),
+        || write_arrays_and_map(job, r, dir, dpi),
     );
     csv.and(rest)
 }
 
 /// class.npy, sali.npy, the maps ([`crate::maps::write_maps`]), results.nc and run.json of one
 /// run, in `dir`.
-fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<()> {
+fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path, dpi: u32) -> CliResult<()> {
     let g = &r.grid;
     let class_codes = r.class_codes();
     let mut sali = vec![f64::NAN; g.cells()];
@@ -712,14 +738,14 @@ fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path) -> CliResult<(
         .map_err(|e| runtime("writing class.npy", e))?;
     write_npy_f64(&dir.join("sali.npy"), &shape, &sali)
         .map_err(|e| runtime("writing sali.npy", e))?;
-    crate::maps::write_maps(job, r, &sali, dir)?;
+    crate::maps::write_maps(job, r, &sali, dir, dpi)?;
     if let Some(values) = r.indicator_values() {
         for ((name, _), v) in INDICATORS.iter().zip(&values) {
             let file = format!("{name}.npy");
             write_npy_f64(&dir.join(&file), &shape, v)
                 .map_err(|e| runtime(&format!("writing {file}"), e))?;
         }
-        crate::maps::write_indicator_maps(job, r, &values, dir)?;
+        crate::maps::write_indicator_maps(job, r, &values, dir, dpi)?;
     }
     crate::dataset::write_results_nc(job, r, &job.source, dir)?;
     let mut run = run_json(r);

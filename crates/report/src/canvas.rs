@@ -105,7 +105,9 @@ impl Canvas {
     }
 
     /// Encodes the canvas as a PNG file at `path`, which must end in `.png`.
-    pub(crate) fn write_png(&self, path: &Path) -> Result<(), ReportError> {
+    /// With `dpi`, the resolution is recorded in the file (its pHYs chunk), so that documents
+    /// place the image at its intended physical size.
+    pub(crate) fn write_png(&self, path: &Path, dpi: Option<u32>) -> Result<(), ReportError> {
         let is_png = path
             .extension()
             .and_then(|e| e.to_str())
@@ -124,6 +126,14 @@ impl Canvas {
         encoder.set_depth(png::BitDepth::Eight);
         // Per-row filter choice: plots of flat colour areas compress to about a third.
         encoder.set_adaptive_filter(png::AdaptiveFilterType::Adaptive);
+        if let Some(dpi) = dpi {
+            let per_metre = (f64::from(dpi) / 0.0254).round() as u32;
+            encoder.set_pixel_dims(Some(png::PixelDimensions {
+                xppu: per_metre,
+                yppu: per_metre,
+                unit: png::Unit::Meter,
+            }));
+        }
         let mut writer = encoder.write_header().map_err(plot_err)?;
         writer.write_image_data(&self.rgb).map_err(plot_err)?;
         writer.finish().map_err(plot_err)?;

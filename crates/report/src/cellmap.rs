@@ -10,7 +10,7 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 
 use crate::canvas::{PixelRect, FONT_FAMILY};
 use crate::error::{plot_err, ReportError};
-use crate::figure::{draw_png, write_figure, Figure};
+use crate::figure::{draw_png, write_figure, write_figure_at, Figure};
 
 /// Size in pixels of the images [`render_cell_map`] writes.
 pub const CELL_MAP_SIZE: (u32, u32) = (1100, 760);
@@ -57,6 +57,32 @@ pub struct CellMap<'a> {
 /// do not fill the grid, a code has no category, or a range is not finite and increasing.
 pub fn render_cell_map(map: &CellMap, path: &Path) -> Result<(), ReportError> {
     write_figure(map, path, CELL_MAP_SIZE)
+}
+
+/// The resolution at which [`CELL_MAP_SIZE`] is the map's size (11 × 7.6 inches).
+pub const CELL_MAP_DPI: u32 = 100;
+
+/// The resolutions [`render_cell_map_at`] takes.
+pub const CELL_MAP_DPI_RANGE: std::ops::RangeInclusive<u32> = 50..=600;
+
+/// [`render_cell_map`] with a PNG of `dpi` (in [`CELL_MAP_DPI_RANGE`]): [`CELL_MAP_SIZE`] ×
+/// dpi / [`CELL_MAP_DPI`] pixels, text and lines scaled alike, the resolution recorded in the
+/// file, so the map prints at the same 11 × 7.6 inches with finer pixels. An SVG is drawn at
+/// the default size (it scales without loss).
+pub fn render_cell_map_at(map: &CellMap, path: &Path, dpi: u32) -> Result<(), ReportError> {
+    if !CELL_MAP_DPI_RANGE.contains(&dpi) {
+        return Err(ReportError::Plot(format!(
+            "a map's resolution must be in {}..={} dpi (got {dpi})",
+            CELL_MAP_DPI_RANGE.start(),
+            CELL_MAP_DPI_RANGE.end()
+        )));
+    }
+    let scaled = |n: u32| (u64::from(n) * u64::from(dpi) / u64::from(CELL_MAP_DPI)) as u32;
+    let size = match crate::figure::ImageFormat::of(path)? {
+        crate::figure::ImageFormat::Png => (scaled(CELL_MAP_SIZE.0), scaled(CELL_MAP_SIZE.1)),
+        crate::figure::ImageFormat::Svg => CELL_MAP_SIZE,
+    };
+    write_figure_at(map, path, size, Some(dpi))
 }
 
 /// Where the cells of an `nx` × `ny` map lie in the images [`render_cell_map`] writes (it
@@ -162,7 +188,7 @@ impl Figure for CellMap<'_> {
         root: &DrawingArea<DB, Shift>,
         (width, height): (u32, u32),
     ) -> Result<PixelRect, ReportError> {
-        let s = (f64::from(width.min(height)) / 700.0).clamp(0.4, 3.0);
+        let s = (f64::from(width.min(height)) / 700.0).clamp(0.4, 7.0);
         let px = |v: f64| (v * s).round().max(1.0) as u32;
         let font = |size: f64| (FONT_FAMILY, size * s).into_font().color(&BLACK);
         // The title in a band of fixed height (a caption's would follow its glyphs), so that

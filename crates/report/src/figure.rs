@@ -90,8 +90,18 @@ pub(crate) fn write_figure<F: Figure>(
     path: &Path,
     size: (u32, u32),
 ) -> Result<(), ReportError> {
+    write_figure_at(fig, path, size, None)
+}
+
+/// [`write_figure`] with the PNG's resolution `dpi` recorded in it.
+pub(crate) fn write_figure_at<F: Figure>(
+    fig: &F,
+    path: &Path,
+    size: (u32, u32),
+    dpi: Option<u32>,
+) -> Result<(), ReportError> {
     match ImageFormat::of(path)? {
-        ImageFormat::Png => draw_png(fig, size)?.write_png(path),
+        ImageFormat::Png => draw_png(fig, size)?.write_png(path, dpi),
         ImageFormat::Svg => Ok(std::fs::write(path, draw_svg(fig, size)?)?),
     }
 }

@@ -29,7 +29,10 @@ mod netcdf;
 mod npy;
 mod table;
 
-pub use cellmap::{render_cell_map, Category, CellMap, CellPixels, Scale, CELL_MAP_SIZE};
+pub use cellmap::{
+    render_cell_map, render_cell_map_at, Category, CellMap, CellPixels, Scale, CELL_MAP_DPI,
+    CELL_MAP_DPI_RANGE, CELL_MAP_SIZE,
+};
 pub use error::ReportError;
 pub use figure::ImageFormat;
 pub use lines::{render_lines, LinePlot};
