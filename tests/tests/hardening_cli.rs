@@ -90,11 +90,21 @@ fn a_run_that_fails_writing_leaves_the_older_outputs_as_they_were() {
         "{}",
         stderr(&failed)
     );
+    // The outputs are as they were; only the checkpoint of the committed outcomes is new, and
+    // --resume finishes the run from it once files can be written.
+    let checkpoint = Path::new(".salient-checkpoint");
+    let after: Vec<_> = snapshot(&out)
+        .into_iter()
+        .filter(|(p, _)| !p.starts_with(checkpoint))
+        .collect();
     assert_eq!(
-        snapshot(&out),
-        before,
+        after, before,
         "a failed run changed the output folder or left partial files"
     );
+    assert!(stderr(&failed).contains("--resume"), "{}", stderr(&failed));
+    let resumed = salient(&["run", &second, "--resume", "--out", out.to_str().unwrap()]);
+    assert!(resumed.status.success(), "{}", stderr(&resumed));
+    assert!(!out.join(checkpoint).exists());
 }
 
 /// Runs `salient` as an unprivileged user: directly when this process is one, through

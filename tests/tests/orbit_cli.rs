@@ -99,7 +99,7 @@ fn out_dir_gets_series_crossings_plots_and_summary() {
     let mut lines = series.lines();
     assert_eq!(
         lines.next().unwrap(),
-        "t,sali,gali_2,gali_3,gali_4,mle,energy_error"
+        "t,sali,gali_2,gali_3,gali_4,mle,megno,megno_mean,fli,energy_error"
     );
     let rows: Vec<Vec<f64>> = lines
         .map(|l| l.split(',').map(|x| x.parse().unwrap()).collect())

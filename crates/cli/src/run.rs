@@ -145,14 +145,17 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         every: Duration::from_secs_f64(args.checkpoint_every),
     };
     let dpi = map_dpi(args.dpi)?;
-    let results = run_sweep(
-        &job,
-        threads,
-        &out,
-        Some((staged.path(), dpi)),
-        Some(resume),
-    )?;
-    write_sweep(&results, Some((&out, staged)), None, args.json)?;
+    let stage = Some((staged.path(), dpi));
+    let done = run_sweep(&job, threads, &out, stage, Some(resume))
+        .and_then(|results| write_sweep(&results, Some((&out, staged)), None, args.json));
+    if done.is_err() {
+        tracing::warn!(
+            "the committed outcomes are kept in {}: `salient run SPEC --resume --out {}` goes on from them",
+            out.join(crate::checkpoint::FOLDER).display(),
+            out.display()
+        );
+    }
+    done?;
     checkpoint.remove()
 }
 
