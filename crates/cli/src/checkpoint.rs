@@ -48,9 +48,20 @@ impl Checkpoint {
         let dir = out.join(FOLDER);
         let spec_file = dir.join("spec.json");
         let mine = identity(job);
-        let saved: Option<Value> = std::fs::read_to_string(&spec_file)
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok());
+        // Compared as text: both are this serialisation of a parsed spec (reading floats back
+        // through JSON may not give the same bits).
+        let text = serde_json::to_string_pretty(&mine).expect("JSON") + "\n";
+        let saved = match std::fs::read_to_string(&spec_file) {
+            Ok(t) => Some(t),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(e) => {
+                return Err(CliError::Usage(format!(
+                    "{} cannot be read ({e}): remove {} to start over",
+                    spec_file.display(),
+                    dir.display()
+                )))
+            }
+        };
         let usage = |msg: String| Err(CliError::Usage(msg));
         match (&saved, resume) {
             (Some(_), false) => {
@@ -60,11 +71,14 @@ impl Checkpoint {
                     dir.display()
                 ))
             }
-            (Some(s), true) if *s != mine => {
-                let what = if s["salient"] != mine["salient"] {
-                    format!("Salient {} (this is {})", s["salient"], mine["salient"])
+            (Some(s), true) if *s != text => {
+                let theirs: Value = serde_json::from_str(s).unwrap_or(Value::Null);
+                let what = if theirs.is_null() {
+                    "a spec.json that does not parse".to_string()
+                } else if theirs["salient"] != mine["salient"] {
+                    format!("Salient {} (this is {})", theirs["salient"], mine["salient"])
                 } else {
-                    format!("another spec (name {})", s["spec"]["name"])
+                    format!("another spec (name {})", theirs["spec"]["name"])
                 };
                 return usage(format!(
                     "--resume: the checkpoint in {} was made by {what}; resume it with its own spec, or use another --out",
@@ -88,7 +102,6 @@ impl Checkpoint {
             for index in 0..job.runs.len() {
                 let _ = std::fs::remove_file(run_file(&dir, index));
             }
-            let text = serde_json::to_string_pretty(&mine).expect("JSON") + "\n";
             let tmp = dir.join("spec.json.tmp");
             std::fs::write(&tmp, text)
                 .and_then(|()| std::fs::rename(&tmp, &spec_file))
@@ -151,19 +164,20 @@ fn load_run(path: &Path, job: &JobSpec, index: usize) -> CliResult<Vec<Outcome>>
 pub struct RunSaver<'a> {
     checkpoint: &'a Checkpoint,
     index: usize,
-    /// Outcomes of `ledger.committed` already in the file.
-    saved: usize,
+    /// Outcomes of `ledger.committed` already in the file: at the first tick, which comes right
+    /// after the saved outcomes were offered and before any orbit ran, all of them.
+    saved: Option<usize>,
     every: Duration,
     last: Instant,
 }
 
 impl<'a> RunSaver<'a> {
-    /// For run `index`, whose first `saved` committed outcomes are in the file already.
-    pub fn new(checkpoint: &'a Checkpoint, index: usize, saved: usize, every: Duration) -> Self {
+    /// For run `index`, resumed from its file (if any) by [`salient_grid::run_embedded_resumed`].
+    pub fn new(checkpoint: &'a Checkpoint, index: usize, every: Duration) -> Self {
         RunSaver {
             checkpoint,
             index,
-            saved,
+            saved: None,
             every,
             last: Instant::now(),
         }
@@ -172,6 +186,9 @@ impl<'a> RunSaver<'a> {
     /// Appends what `ledger` committed since the last save, if the interval has passed; when a
     /// signal asked the process to stop, saves it all and ends the process ([`stop_now`]).
     pub fn tick(&mut self, ledger: &Ledger) -> CliResult<()> {
+        if self.saved.is_none() {
+            self.saved = Some(ledger.committed.len());
+        }
         if STOP.load(Ordering::Relaxed) {
             let _files = files_lock();
             self.save(ledger)?;
@@ -192,10 +209,11 @@ impl<'a> RunSaver<'a> {
     }
 
     fn save(&mut self, ledger: &Ledger) -> CliResult<()> {
-        if ledger.committed.len() > self.saved {
+        let saved = *self.saved.get_or_insert(0);
+        if ledger.committed.len() > saved {
             self.checkpoint
-                .append(self.index, &ledger.committed[self.saved..])?;
-            self.saved = ledger.committed.len();
+                .append(self.index, &ledger.committed[saved..])?;
+            self.saved = Some(ledger.committed.len());
         }
         Ok(())
     }
@@ -210,6 +228,14 @@ static STOP_SIGNAL: AtomicI32 = AtomicI32::new(0);
 static FILES: Mutex<()> = Mutex::new(());
 /// The staging and output folders of the sweep in progress.
 static FOLDERS: OnceLock<(PathBuf, PathBuf)> = OnceLock::new();
+/// Every run has finished and the sweep's files are being published: a stop lets it finish.
+static FINISHING: AtomicBool = AtomicBool::new(false);
+
+/// Marks the sweep as finishing (call with [`files_lock`] held, and hold it while the files
+/// are published): a signal from then on does not touch the folders.
+pub fn finishing() {
+    FINISHING.store(true, Ordering::Relaxed);
+}
 
 /// Holds off a stop while files are written.
 pub fn files_lock() -> MutexGuard<'static, ()> {
@@ -229,13 +255,21 @@ pub fn stop_on_signals(stage: &Path, out: &Path) -> CliResult<()> {
     let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM, SIGHUP])
         .map_err(|e| runtime("installing the signal handlers", e))?;
     std::thread::spawn(move || {
-        if let Some(signal) = signals.forever().next() {
+        for (k, signal) in signals.forever().enumerate() {
+            if k > 0 {
+                // A second signal: the user will not wait for the first one's saving.
+                std::process::exit(128 + signal);
+            }
             STOP_SIGNAL.store(signal, Ordering::Relaxed);
             tracing::warn!("stopping: saving the checkpoint and the finished runs");
             STOP.store(true, Ordering::Relaxed);
-            std::thread::sleep(STOP_GRACE);
-            let _files = files_lock();
-            stop_now();
+            std::thread::spawn(|| {
+                std::thread::sleep(STOP_GRACE);
+                let _files = files_lock();
+                if !FINISHING.load(Ordering::Relaxed) {
+                    stop_now();
+                }
+            });
         }
     });
     Ok(())
@@ -245,14 +279,52 @@ pub fn stop_on_signals(stage: &Path, out: &Path) -> CliResult<()> {
 fn stop_now() -> ! {
     let status = 128 + STOP_SIGNAL.load(Ordering::Relaxed);
     if let Some((stage, out)) = FOLDERS.get() {
+        // Never a panic on a closed stderr (a hung-up terminal): the process must exit.
+        let mut err = std::io::stderr();
         if let Err(e) = crate::output::publish_folders(stage, out) {
-            eprintln!("error: {e}");
+            let _ = writeln!(err, "error: {e}");
         }
-        eprintln!(
+        let _ = writeln!(
+            err,
             "stopped: the finished runs are in {}; `salient run SPEC --resume --out {}` goes on from the checkpoint",
             out.display(),
             out.display()
         );
     }
     std::process::exit(status)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn job(chaotic: &str) -> JobSpec {
+        let text = format!(
+            "name = \"c\"\n[system]\nkind = \"henon-heiles\"\nenergy = 0.125\n[grid]\ncells = [4, 4]\n[sweep]\nmethod = [\"tm-sbab2c\"]\ntau = [0.5]\nt_final = [10]\n[classify]\nchaotic = {chaotic}\n"
+        );
+        crate::spec::parse(&text, false).unwrap()
+    }
+
+    /// A spec resumes its own checkpoint whatever its numbers (1e-30 does not survive a
+    /// parse-and-compare through JSON, its text does), and no other spec's.
+    #[test]
+    fn a_checkpoint_is_known_by_its_spec_text() {
+        let dir = std::env::temp_dir().join(format!("salient-ckpt-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let (mine, other) = (job("1e-30"), job("1e-29"));
+        let (checkpoint, saved) = Checkpoint::open(&dir, &mine, false).unwrap();
+        assert_eq!(saved, vec![Vec::new()]);
+        checkpoint.append(0, &[]).unwrap();
+        assert!(matches!(
+            Checkpoint::open(&dir, &mine, false),
+            Err(CliError::Usage(_))
+        ));
+        let Err(CliError::Usage(e)) = Checkpoint::open(&dir, &other, true) else {
+            panic!("another spec's checkpoint was accepted");
+        };
+        assert!(e.contains("another spec"), "{e}");
+        let (_, saved) = Checkpoint::open(&dir, &mine, true).unwrap();
+        assert_eq!(saved, vec![Vec::new()]);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

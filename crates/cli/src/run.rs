@@ -136,6 +136,7 @@ pub fn run(args: RunArgs) -> CliResult<()> {
             args.checkpoint_every
         )));
     }
+    let dpi = map_dpi(args.dpi)?;
     let staged = Staged::begin(&out, "--out")?;
     let (checkpoint, committed) = Checkpoint::open(&out, &job, args.resume)?;
     crate::checkpoint::stop_on_signals(staged.path(), &out)?;
@@ -144,10 +145,13 @@ pub fn run(args: RunArgs) -> CliResult<()> {
         committed,
         every: Duration::from_secs_f64(args.checkpoint_every),
     };
-    let dpi = map_dpi(args.dpi)?;
     let stage = Some((staged.path(), dpi));
-    let done = run_sweep(&job, threads, &out, stage, Some(resume))
-        .and_then(|results| write_sweep(&results, Some((&out, staged)), None, args.json));
+    let done = run_sweep(&job, threads, &out, stage, Some(resume)).and_then(|results| {
+        // From here a signal lets the sweep's files be published.
+        let _files = files_lock();
+        crate::checkpoint::finishing();
+        write_sweep(&results, Some((&out, staged)), None, args.json)
+    });
     if done.is_err() {
         tracing::warn!(
             "the committed outcomes are kept in {}: `salient run SPEC --resume --out {}` goes on from them",
@@ -201,16 +205,16 @@ pub fn run_sweep(
         let forecast = similar.map(|p| (p.ledger.forecast(), p.dir_name()));
         let saving = resume.as_mut().map(|s| {
             let done = std::mem::take(&mut s.committed[index]);
-            (
-                RunSaver::new(s.checkpoint, index, done.len(), s.every),
-                done,
-            )
+            (RunSaver::new(s.checkpoint, index, s.every), done)
         });
         let result = pool.install(|| run_one(job, index, r, threads, out, forecast, saving))?;
         if let Some((stage, dpi)) = stage {
-            // A stop waits for the folder to be whole.
+            // A stop waits for the folder to be whole, and never publishes one that failed.
             let _files = files_lock();
-            pool.install(|| write_run(job, &result, stage, dpi))?;
+            if let Err(e) = pool.install(|| write_run(job, &result, stage, dpi)) {
+                let _ = std::fs::remove_dir_all(stage.join(result.dir_name()));
+                return Err(e);
+            }
         }
         results.push(result);
     }

@@ -420,7 +420,8 @@ pub fn run_embedded_forecast(
 
 /// [`run_embedded_forecast`] going on from `committed`: outcomes an earlier process committed
 /// for this run (its checkpoint), offered to the ledger before any orbit runs. Their cells are
-/// never integrated again, and the labels are those of an uninterrupted run.
+/// never integrated again, and the labels are those of an uninterrupted run. `progress` is
+/// called once right after the offers, before any orbit runs.
 pub fn run_embedded_resumed(
     grid: &Grid,
     cell_run: &CellRun,
@@ -458,6 +459,7 @@ fn run_embedded_with(
         for o in committed {
             ledger.offer(o);
         }
+        progress(&ledger);
         while !ledger.done() {
             let cells = ledger.needed(window.max(1), &|_| false);
             for o in integrate_cells(grid, cell_run, mode, &cells) {
@@ -475,6 +477,7 @@ fn run_embedded_with(
         ledger.offer(o);
     }
     claims.sync(&mut ledger);
+    progress(&ledger);
     let shared = Mutex::new(Shared { ledger, progress });
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
