@@ -1,7 +1,7 @@
 //! The maps `salient run` draws: every cell of the class map in its class's colour, the SALI
 //! map's bands, and SVG beside every PNG.
 
-use salient_report::{CellMap, CELL_MAP_SIZE};
+use salient_report::{CellMap, CellPixels, CELL_MAP_SIZE};
 use salient_tests::{run_dirs, run_embedded, write_spec};
 
 const SPEC: &str = r#"
@@ -41,6 +41,27 @@ fn decode(path: &std::path::Path) -> (Vec<u8>, u32) {
     (buf, info.width)
 }
 
+/// Where the cells of the 40 × 40 maps lie in the default-size images.
+fn cell_pixels() -> CellPixels {
+    let codes = vec![0u8; 40 * 40];
+    let layout = CellMap {
+        codes: &codes,
+        categories: &[salient_report::Category {
+            label: "",
+            colour: [0; 3],
+        }],
+        nx: 40,
+        ny: 40,
+        x_range: (0.0, 1.0),
+        y_range: (0.0, 1.0),
+        title: "layout",
+        x_label: "q₂",
+        y_label: "p₂",
+        scale: None,
+    };
+    layout.cell_pixels().unwrap()
+}
+
 #[test]
 fn each_cell_of_the_class_map_is_drawn_in_its_class_colour() {
     let dir = tempfile::tempdir().unwrap();
@@ -78,23 +99,7 @@ fn each_cell_of_the_class_map_is_drawn_in_its_class_colour() {
     assert_eq!(class[sea.0 * 40 + sea.1], "chaotic");
 
     let (rgb, width) = decode(&run.join("class_map.png"));
-    let codes = vec![0u8; 40 * 40];
-    let layout = CellMap {
-        codes: &codes,
-        categories: &[salient_report::Category {
-            label: "",
-            colour: [0; 3],
-        }],
-        nx: 40,
-        ny: 40,
-        x_range: (0.0, 1.0),
-        y_range: (0.0, 1.0),
-        title: "layout",
-        x_label: "q₂",
-        y_label: "p₂",
-        scale: None,
-    };
-    let pixels = layout.cell_pixels().unwrap();
+    let pixels = cell_pixels();
     let pixel = |i: usize, j: usize| {
         let (x, y) = pixels.centre(i, j);
         let k = 3 * (y as usize * width as usize + x as usize);
@@ -156,23 +161,7 @@ fn maps_at_another_resolution_keep_their_layout() {
     assert_eq!((dims.xppu, dims.unit), (11_811, png::Unit::Meter));
     let mut big = vec![0; reader.output_buffer_size()];
     reader.next_frame(&mut big).unwrap();
-    let codes = vec![0u8; 40 * 40];
-    let layout = CellMap {
-        codes: &codes,
-        categories: &[salient_report::Category {
-            label: "",
-            colour: [0; 3],
-        }],
-        nx: 40,
-        ny: 40,
-        x_range: (0.0, 1.0),
-        y_range: (0.0, 1.0),
-        title: "layout",
-        x_label: "q₂",
-        y_label: "p₂",
-        scale: None,
-    };
-    let pixels = layout.cell_pixels().unwrap();
+    let pixels = cell_pixels();
     for i in 0..40 {
         for j in 0..40 {
             let (x, y) = pixels.centre(i, j);

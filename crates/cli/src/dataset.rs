@@ -156,15 +156,7 @@ mod tests {
 
     #[test]
     fn every_status_has_its_own_code() {
-        let all = [
-            Status::Ok,
-            Status::ChaoticEarlyStop,
-            Status::Escaped,
-            Status::NonFinite,
-            Status::StepLimit,
-            Status::EnergyDrift,
-        ];
-        let codes: Vec<i32> = all.iter().map(|&s| status_code(s)).collect();
+        let codes: Vec<i32> = Status::ALL.iter().map(|&s| status_code(s)).collect();
         assert_eq!(codes, vec![1, 2, 3, 4, 5, 6]);
     }
 }

@@ -31,6 +31,16 @@ pub enum Status {
 }
 
 impl Status {
+    /// Every status, in the order of their declaration.
+    pub const ALL: [Status; 6] = [
+        Status::Ok,
+        Status::ChaoticEarlyStop,
+        Status::Escaped,
+        Status::NonFinite,
+        Status::StepLimit,
+        Status::EnergyDrift,
+    ];
+
     pub fn as_str(self) -> &'static str {
         match self {
             Status::Ok => "ok",
@@ -53,6 +63,9 @@ pub enum Class {
 }
 
 impl Class {
+    /// Every class, from regular to chaotic.
+    pub const ALL: [Class; 3] = [Class::Regular, Class::Sticky, Class::Chaotic];
+
     pub fn as_str(self) -> &'static str {
         match self {
             Class::Regular => "regular",

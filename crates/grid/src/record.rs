@@ -7,15 +7,9 @@
 use crate::ledger::{CellIndicators, Outcome};
 use salient_core::orbit::{Class, Status};
 
-const STATUSES: [Status; 6] = [
-    Status::Ok,
-    Status::ChaoticEarlyStop,
-    Status::Escaped,
-    Status::NonFinite,
-    Status::StepLimit,
-    Status::EnergyDrift,
-];
-const CLASSES: [Class; 3] = [Class::Regular, Class::Sticky, Class::Chaotic];
+/// A status's code is its place here, a class's its place here plus one (0: no class).
+const STATUSES: [Status; 6] = Status::ALL;
+const CLASSES: [Class; 3] = Class::ALL;
 
 /// Bytes before a record's payload: its length (u32) and FNV-1a 64 checksum (u64).
 const FRAME: usize = 12;
