@@ -5,7 +5,7 @@
 use salient_tests::{run_dirs, run_embedded, salient, salient_path, write_spec};
 use std::path::Path;
 use std::process::{Command, Stdio};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 /// Two runs, the second (DOP853) a few seconds long.
 const SPEC: &str = r#"
@@ -23,8 +23,9 @@ delta = [1e-9]
 "#;
 
 /// Starts `salient run SPEC --out OUT` with a checkpoint after every commit, stops it with
-/// `signal` after `delay`, and returns its exit status.
-fn interrupted(spec: &str, out: &Path, delay: Duration, signal: &str) -> Option<i32> {
+/// `signal` once `ready` says so (given the output folder), and returns its exit status (that
+/// of a normal end if it finished first).
+fn interrupted(spec: &str, out: &Path, signal: &str, ready: impl Fn(&Path) -> bool) -> Option<i32> {
     let mut child = Command::new(salient_path())
         .args([
             "run",
@@ -40,11 +41,26 @@ fn interrupted(spec: &str, out: &Path, delay: Duration, signal: &str) -> Option<
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    std::thread::sleep(delay);
+    let limit = Instant::now() + Duration::from_secs(120);
+    while !ready(out) && Instant::now() < limit && child.try_wait().unwrap().is_none() {
+        std::thread::sleep(Duration::from_millis(5));
+    }
     let pid = child.id().to_string();
-    let killed = Command::new("kill").args([signal, &pid]).status().unwrap();
-    assert!(killed.success());
+    let _ = Command::new("kill").args([signal, &pid]).status();
     child.wait().unwrap().code()
+}
+
+/// Whether the first run's folder is written (in the staging folder): the second is running.
+fn first_run_written(out: &Path) -> bool {
+    std::fs::read_dir(out).is_ok_and(|entries| {
+        entries.flatten().any(|e| {
+            e.file_name()
+                .to_string_lossy()
+                .starts_with(".salient-partial-")
+                && std::fs::read_dir(e.path())
+                    .is_ok_and(|mut runs| runs.any(|r| r.is_ok_and(|r| r.path().is_dir())))
+        })
+    })
 }
 
 fn assert_same_cells(a: &Path, b: &Path) {
@@ -64,17 +80,25 @@ fn runs_stopped_by_sigkill_or_sigterm_resume_to_the_same_bytes() {
     let dir = tempfile::tempdir().unwrap();
     let spec = write_spec(dir.path(), "resume.toml", SPEC);
     let whole = dir.path().join("whole");
+    let started = Instant::now();
     run_embedded(&spec, &whole);
-    // A moment drawn from the clock: anywhere in the first run, the second, or between.
+    let wall = started.elapsed();
+    // SIGKILL at a moment drawn from the clock within the uninterrupted run's time (the first
+    // run, the second, or between); SIGTERM while the second runs.
     let nanos = SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .unwrap()
         .subsec_nanos();
-    let random = Duration::from_millis(50 + u64::from(nanos) % 2500);
-    for (signal, delay) in [("-KILL", random), ("-TERM", Duration::from_millis(1500))] {
+    let random = wall.mul_f64(0.05 + 0.85 * f64::from(nanos) / 1e9);
+    for signal in ["-KILL", "-TERM"] {
         let out = dir.path().join(format!("stopped{signal}"));
-        let status = interrupted(&spec, &out, delay, signal);
-        let label = format!("{signal} after {delay:?}");
+        let label = format!("{signal} (random moment {random:?} of {wall:?})");
+        let status = if signal == "-KILL" {
+            let deadline = Instant::now() + random;
+            interrupted(&spec, &out, signal, |_| Instant::now() >= deadline)
+        } else {
+            interrupted(&spec, &out, signal, first_run_written)
+        };
         if signal == "-TERM" {
             // 128 + 15, with the finished first run's folder in place.
             assert_eq!(status, Some(143), "{label}");
@@ -104,7 +128,7 @@ fn a_checkpoint_of_another_spec_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let spec = write_spec(dir.path(), "resume.toml", SPEC);
     let out = dir.path().join("out");
-    interrupted(&spec, &out, Duration::from_millis(1200), "-KILL");
+    interrupted(&spec, &out, "-KILL", first_run_written);
     assert!(out.join(".salient-checkpoint/spec.json").exists());
     let other = write_spec(
         dir.path(),
