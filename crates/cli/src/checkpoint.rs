@@ -246,9 +246,10 @@ pub fn files_lock() -> MutexGuard<'static, ()> {
 /// signal's thread ends the process itself (with the last periodic checkpoint).
 const STOP_GRACE: Duration = Duration::from_secs(2);
 
-/// On SIGINT, SIGTERM or SIGHUP: the run in progress saves what it committed at its next commit (or
-/// after [`STOP_GRACE`] the periodic checkpoint stands), the finished runs' folders move from
-/// `stage` into `out`, and the process exits with 128 + the signal's number.
+/// On SIGINT, SIGTERM or SIGHUP: the run in progress saves what it committed at its next
+/// commit (or after [`STOP_GRACE`] the periodic checkpoint stands), the finished runs' folders
+/// move from `stage` into `out`, and the process exits with 128 + the signal's number. A
+/// second signal ends the process at once.
 pub fn stop_on_signals(stage: &Path, out: &Path) -> CliResult<()> {
     use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
     let _ = FOLDERS.set((stage.to_path_buf(), out.to_path_buf()));
