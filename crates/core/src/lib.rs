@@ -22,6 +22,7 @@ pub mod indicators;
 pub mod lanes;
 pub mod method;
 pub mod orbit;
+pub mod polynomial;
 pub mod precision;
 pub mod real;
 pub mod run;
