@@ -1,7 +1,9 @@
 //! Polynomials in q1…qN read from text ("(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3"), with exact
-//! partial derivatives: the potentials of systems given as data. Terms are kept merged and
+//! partial derivatives: the potentials of systems given as data, and the system
+//! ([`PolynomialSystem`]) the integrators run on. Terms are kept merged and
 //! sorted by their powers, so equal polynomials compare equal however they were written.
 
+use crate::hamiltonian::Hamiltonian;
 use crate::real::Real;
 
 /// One monomial: `coeff` · Π q_i^powers[i].
@@ -381,10 +383,89 @@ impl Parser {
     }
 }
 
+/// The system H = ½|p|² + V(q) of a polynomial potential in `N` degrees of freedom, with every
+/// derivative the integrators ask for derived once, exactly, when it is made.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PolynomialSystem<const N: usize> {
+    potential: Polynomial,
+    /// ∂V/∂q_i.
+    grad: Vec<Polynomial>,
+    /// ∂²V/∂q_i∂q_j, row i.
+    hessian: Vec<Vec<Polynomial>>,
+    /// ∂³V/∂q_i∂q_j∂q_k at [i][j][k].
+    third: Vec<Vec<Vec<Polynomial>>>,
+}
+
+impl<const N: usize> PolynomialSystem<N> {
+    /// The system of `potential`, a polynomial in q1…qN.
+    pub fn new(potential: Polynomial) -> Self {
+        assert_eq!(potential.dof(), N, "a potential in {N} coordinates");
+        let grad: Vec<Polynomial> = (0..N).map(|i| potential.derivative(i)).collect();
+        let hessian: Vec<Vec<Polynomial>> = grad
+            .iter()
+            .map(|g| (0..N).map(|j| g.derivative(j)).collect())
+            .collect();
+        let third = hessian
+            .iter()
+            .map(|row| {
+                row.iter()
+                    .map(|h| (0..N).map(|k| h.derivative(k)).collect())
+                    .collect()
+            })
+            .collect();
+        PolynomialSystem {
+            potential,
+            grad,
+            hessian,
+            third,
+        }
+    }
+}
+
+impl<const N: usize> Hamiltonian<N> for PolynomialSystem<N> {
+    fn name(&self) -> &'static str {
+        "polynomial"
+    }
+
+    fn potential<T: Real>(&self, q: &[T; N]) -> T {
+        self.potential.eval(q)
+    }
+
+    fn grad<T: Real>(&self, q: &[T; N]) -> [T; N] {
+        core::array::from_fn(|i| self.grad[i].eval(q))
+    }
+
+    fn hess_vec<T: Real>(&self, q: &[T; N], u: &[T; N]) -> [T; N] {
+        let h = self.hessian(q);
+        core::array::from_fn(|i| {
+            let mut s = T::splat(0.0);
+            for j in 0..N {
+                s = h[i][j].mul_add(u[j], s);
+            }
+            s
+        })
+    }
+
+    fn hessian<T: Real>(&self, q: &[T; N]) -> [[T; N]; N] {
+        core::array::from_fn(|i| core::array::from_fn(|j| self.hessian[i][j].eval(q)))
+    }
+
+    fn third_vec<T: Real>(&self, q: &[T; N], w: &[T; N], u: &[T; N]) -> [T; N] {
+        core::array::from_fn(|i| {
+            let mut s = T::splat(0.0);
+            for j in 0..N {
+                for k in 0..N {
+                    s = self.third[i][j][k].eval(q).mul_add(w[j] * u[k], s);
+                }
+            }
+            s
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::hamiltonian::Hamiltonian;
     use crate::HenonHeiles;
 
     const HENON_HEILES: &str = "(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3";

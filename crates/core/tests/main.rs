@@ -8,4 +8,5 @@ mod common;
 mod dop853;
 mod integrators;
 mod orbits;
+mod polynomial;
 mod taylor;
