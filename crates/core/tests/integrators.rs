@@ -73,8 +73,8 @@ fn a_corrector_with_the_wrong_sign_is_caught_by_the_order_test() {
 }
 
 /// The one-step tangent matrix M (columns = images of the 4 axes) at x.
-fn tangent_matrix(
-    map: &TangentMap<'_, HenonHeiles>,
+fn tangent_matrix<H: Hamiltonian<2>>(
+    map: &TangentMap<'_, H>,
     x: ([f64; 2], [f64; 2]),
     h: f64,
 ) -> [[f64; 4]; 4] {
@@ -99,6 +99,65 @@ fn tangent_matrix(
     m
 }
 
+/// The tangent map of one step τ at x equals central differences of the orbit-only step, and
+/// is symplectic (MᵀJM = J); `label` names the case in failures.
+pub fn assert_jacobian_and_symplectic<H: Hamiltonian<2>>(
+    map: &TangentMap<'_, H>,
+    x: ([f64; 2], [f64; 2]),
+    tau: f64,
+    label: &str,
+) {
+    let m = tangent_matrix(map, x, tau);
+    let e = 1e-5;
+    for k in 0..4 {
+        let mut xp = x;
+        let mut xm = x;
+        if k < 2 {
+            xp.0[k] += e;
+            xm.0[k] -= e;
+        } else {
+            xp.1[k - 2] += e;
+            xm.1[k - 2] -= e;
+        }
+        map.orbit_step(&mut xp.0, &mut xp.1, tau);
+        map.orbit_step(&mut xm.0, &mut xm.1, tau);
+        for i in 0..4 {
+            let (a, b) = if i < 2 {
+                (xp.0[i], xm.0[i])
+            } else {
+                (xp.1[i - 2], xm.1[i - 2])
+            };
+            let fd = (a - b) / (2.0 * e);
+            let scale = m[i][k].abs().max(1.0);
+            assert!(
+                (fd - m[i][k]).abs() <= 1e-7 * scale,
+                "{label}: M[{i}][{k}] = {} but finite differences give {fd}",
+                m[i][k]
+            );
+        }
+    }
+    // MᵀJM = J with J = [[0, I], [−I, 0]].
+    let j = |r: usize, c: usize| match (r, c) {
+        (0, 2) | (1, 3) => 1.0,
+        (2, 0) | (3, 1) => -1.0,
+        _ => 0.0,
+    };
+    for r in 0..4 {
+        for c in 0..4 {
+            let mut s = 0.0;
+            for a in 0..4 {
+                for b in 0..4 {
+                    s += m[a][r] * j(a, b) * m[b][c];
+                }
+            }
+            assert!(
+                (s - j(r, c)).abs() <= 1e-12,
+                "{label}: (MᵀJM)[{r}][{c}] = {s}"
+            );
+        }
+    }
+}
+
 #[test]
 fn tangent_map_is_the_jacobian_of_the_numerical_step_and_symplectic() {
     let ham = HenonHeiles;
@@ -107,58 +166,7 @@ fn tangent_map_is_the_jacobian_of_the_numerical_step_and_symplectic() {
         for tau in [0.05, 0.5] {
             let map = TangentMap::new(&ham, &scheme, tau);
             for x in points {
-                let m = tangent_matrix(&map, x, tau);
-                // Central finite differences of the orbit-only step.
-                let e = 1e-5;
-                for k in 0..4 {
-                    let mut xp = x;
-                    let mut xm = x;
-                    if k < 2 {
-                        xp.0[k] += e;
-                        xm.0[k] -= e;
-                    } else {
-                        xp.1[k - 2] += e;
-                        xm.1[k - 2] -= e;
-                    }
-                    map.orbit_step(&mut xp.0, &mut xp.1, tau);
-                    map.orbit_step(&mut xm.0, &mut xm.1, tau);
-                    for i in 0..4 {
-                        let (a, b) = if i < 2 {
-                            (xp.0[i], xm.0[i])
-                        } else {
-                            (xp.1[i - 2], xm.1[i - 2])
-                        };
-                        let fd = (a - b) / (2.0 * e);
-                        let scale = m[i][k].abs().max(1.0);
-                        assert!(
-                            (fd - m[i][k]).abs() <= 1e-7 * scale,
-                            "{} τ={tau}: M[{i}][{k}] = {} but finite differences give {fd}",
-                            scheme.name,
-                            m[i][k]
-                        );
-                    }
-                }
-                // MᵀJM = J with J = [[0, I], [−I, 0]].
-                let j = |r: usize, c: usize| match (r, c) {
-                    (0, 2) | (1, 3) => 1.0,
-                    (2, 0) | (3, 1) => -1.0,
-                    _ => 0.0,
-                };
-                for r in 0..4 {
-                    for c in 0..4 {
-                        let mut s = 0.0;
-                        for a in 0..4 {
-                            for b in 0..4 {
-                                s += m[a][r] * j(a, b) * m[b][c];
-                            }
-                        }
-                        assert!(
-                            (s - j(r, c)).abs() <= 1e-12,
-                            "{} τ={tau}: (MᵀJM)[{r}][{c}] = {s}",
-                            scheme.name
-                        );
-                    }
-                }
+                assert_jacobian_and_symplectic(&map, x, tau, &format!("{} τ={tau}", scheme.name));
             }
         }
     }
