@@ -46,7 +46,11 @@ fn interrupted(spec: &str, out: &Path, signal: &str, ready: impl Fn(&Path) -> bo
         std::thread::sleep(Duration::from_millis(5));
     }
     let pid = child.id().to_string();
-    let _ = Command::new("kill").args([signal, &pid]).status();
+    // It may have ended on its own just now.
+    let _ = Command::new("kill")
+        .args([signal, &pid])
+        .stderr(Stdio::null())
+        .status();
     child.wait().unwrap().code()
 }
 

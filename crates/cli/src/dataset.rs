@@ -6,7 +6,6 @@ use std::path::Path;
 
 use salient_core::orbit::Status;
 use salient_report::{write_netcdf, AttrValue, Axis, GridFile, GridVar, Values};
-use serde_json::Value;
 
 use crate::run::{RunResult, CLASS_CODE_NAMES, INDICATORS};
 use crate::spec::JobSpec;
@@ -42,8 +41,14 @@ fn flags<'a>(codes: impl Iterator<Item = (i32, &'a str)>) -> Vec<(&'static str, 
     ]
 }
 
-/// Writes `results.nc` of run `r` of `job` in `dir`; `source` is run.json's `spec`.
-pub fn write_results_nc(job: &JobSpec, r: &RunResult, source: &Value, dir: &Path) -> CliResult<()> {
+/// Writes `results.nc` of run `r` of `job` in `dir`, with `indicators` (the run's
+/// [`RunResult::indicator_values`]) when it has them.
+pub fn write_results_nc(
+    job: &JobSpec,
+    r: &RunResult,
+    indicators: Option<&[Vec<f64>]>,
+    dir: &Path,
+) -> CliResult<()> {
     let g = r.grid();
     let q2: Vec<f64> = (0..g.n_q2).map(|i| g.centre(g.index(i, 0)).0).collect();
     let p2: Vec<f64> = (0..g.n_p2).map(|j| g.centre(g.index(0, j)).1).collect();
@@ -64,7 +69,6 @@ pub fn write_results_nc(job: &JobSpec, r: &RunResult, source: &Value, dir: &Path
         t_end[k] = l.t_end;
     }
     let text = |s: &str| AttrValue::Text(s.to_string());
-    let indicators = r.indicator_values();
     let mut vars = vec![
         GridVar {
             name: "class",
@@ -102,7 +106,7 @@ pub fn write_results_nc(job: &JobSpec, r: &RunResult, source: &Value, dir: &Path
             attrs: vec![],
         },
     ];
-    for ((name, long_name), v) in INDICATORS.iter().zip(indicators.iter().flatten()) {
+    for ((name, long_name), v) in INDICATORS.iter().zip(indicators.unwrap_or_default()) {
         vars.push(GridVar {
             name,
             long_name,
@@ -124,7 +128,7 @@ pub fn write_results_nc(job: &JobSpec, r: &RunResult, source: &Value, dir: &Path
         ("regular_threshold", AttrValue::F64(th.regular)),
         ("chaotic_threshold", AttrValue::F64(th.chaotic)),
         ("salient_version", text(env!("CARGO_PKG_VERSION"))),
-        ("spec", text(&source.to_string())),
+        ("spec", text(&job.source.to_string())),
     ];
     if th.energy_drift.is_finite() {
         attrs.push(("energy_drift_limit", AttrValue::F64(th.energy_drift)));

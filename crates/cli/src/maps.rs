@@ -91,14 +91,15 @@ fn categories_of(r: &RunResult) -> (Vec<u8>, [u64; MAP_CLASSES.len()]) {
     (codes, counts)
 }
 
-/// class_map.png/.svg and map.png/.svg of one run, in `dir`; `sali` per cell (NaN where a
-/// cell has none).
+/// class_map.png/.svg and map.png/.svg of one run, and with `indicators` (the run's
+/// [`RunResult::indicator_values`]) megno_map, fli_map and mle_map, in `dir`, the PNG files at
+/// `dpi`; `sali` per cell (NaN where a cell has none).
 pub fn write_maps(
     job: &JobSpec,
     r: &RunResult,
     sali: &[f64],
-    dir: &Path,
-    dpi: u32,
+    indicators: Option<&[Vec<f64>]>,
+    (dir, dpi): (&Path, u32),
 ) -> CliResult<()> {
     let title = figure_title(job, r);
     let (codes, counts) = categories_of(r);
@@ -133,16 +134,21 @@ pub fn write_maps(
     }
     let shown_codes: Vec<u8> = codes.iter().map(|&c| index[usize::from(c)]).collect();
     let map = cell_map(r, &shown_codes, &categories, &title, None);
-    draw(&map, dir, "class_map", dpi)?;
-    write_sali_map(
-        job,
-        r,
-        sali,
-        (&codes, &counts),
-        &title,
-        &dir.join("map"),
-        dpi,
-    )
+    let file = |name| MapFile { dir, name, dpi };
+    draw(&map, &file("class_map"))?;
+    let classes = (&codes[..], &counts);
+    write_sali_map(job, r, sali, classes, &title, file("map"))?;
+    if let Some(values) = indicators {
+        write_indicator_maps(r, values, classes, &title, (dir, dpi))?;
+    }
+    Ok(())
+}
+
+/// Where a map goes: `name`.png (at `dpi`) and `name`.svg in `dir`.
+struct MapFile<'a> {
+    dir: &'a Path,
+    name: &'a str,
+    dpi: u32,
 }
 
 /// A map of `r`'s grid.
@@ -168,11 +174,11 @@ fn cell_map<'a>(
     }
 }
 
-/// `name`.png (at `dpi`) and `name`.svg of `map` in `dir`.
-fn draw(map: &CellMap, dir: &Path, name: &str, dpi: u32) -> CliResult<()> {
+/// `map` as its PNG and SVG files.
+fn draw(map: &CellMap, to: &MapFile) -> CliResult<()> {
     for ext in ["png", "svg"] {
-        let file = format!("{name}.{ext}");
-        render_cell_map_at(map, &dir.join(&file), dpi)
+        let file = format!("{}.{ext}", to.name);
+        render_cell_map_at(map, &to.dir.join(&file), to.dpi)
             .map_err(|e| runtime(&format!("drawing {file}"), e))?;
     }
     Ok(())
@@ -224,8 +230,7 @@ fn write_sali_map(
     sali: &[f64],
     classes: (&[u8], &[u64; MAP_CLASSES.len()]),
     title: &str,
-    path: &Path,
-    dpi: u32,
+    to: MapFile,
 ) -> CliResult<()> {
     let edges: Vec<f64> = (0..=SALI_DECADES)
         .map(|k| k as f64 - SALI_DECADES as f64)
@@ -240,7 +245,7 @@ fn write_sali_map(
         edges: &edges,
         colours: &colours,
     };
-    write_banded_map(r, &log_sali, &bands, classes, title, (path, dpi))
+    write_banded_map(r, &log_sali, &bands, classes, title, to)
 }
 
 /// A quantity in bands: `colours[k]` for the values from `edges[k]` to `edges[k + 1]`, values
@@ -251,7 +256,7 @@ struct Bands<'a> {
     colours: &'a [[u8; 3]],
 }
 
-/// `path`.png/.svg: every classified cell's value of `values` in `bands`, the other cells in
+/// The map of every classified cell's value of `values` in `bands`, the other cells in
 /// their class-map colours (`classes` is [`categories_of`]'s).
 fn write_banded_map(
     r: &RunResult,
@@ -259,7 +264,7 @@ fn write_banded_map(
     bands: &Bands,
     (class_codes, counts): (&[u8], &[u64; MAP_CLASSES.len()]),
     title: &str,
-    (path, dpi): (&Path, u32),
+    to: MapFile,
 ) -> CliResult<()> {
     let n = bands.colours.len();
     let mut categories: Vec<Category> = bands
@@ -289,11 +294,7 @@ fn write_banded_map(
         edges: bands.edges,
     };
     let map = cell_map(r, &codes, &categories, title, Some(scale));
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-    draw(&map, dir, &name, dpi)
+    draw(&map, &to)
 }
 
 /// Colours of `n` bands along a perceptually ordered sequential scale from dark violet to
@@ -332,17 +333,15 @@ const FLI_EDGES: [f64; 19] = [
     500.0, 1000.0,
 ];
 
-/// megno_map, fli_map and mle_map (.png/.svg) of a run with indicators, in `dir`; `values` per
-/// indicator of [`INDICATORS`] (the run's [`RunResult::indicator_values`]).
-pub fn write_indicator_maps(
-    job: &JobSpec,
+/// megno_map, fli_map and mle_map of a run with indicators; `values` per indicator of
+/// [`INDICATORS`], `classes` as [`categories_of`] gives them.
+fn write_indicator_maps(
     r: &RunResult,
     values: &[Vec<f64>],
-    dir: &Path,
-    dpi: u32,
+    classes: (&[u8], &[u64; MAP_CLASSES.len()]),
+    title: &str,
+    (dir, dpi): (&Path, u32),
 ) -> CliResult<()> {
-    let title = figure_title(job, r);
-    let (codes, counts) = categories_of(r);
     let column = |name: &str| {
         let k = INDICATORS
             .iter()
@@ -371,8 +370,8 @@ pub fn write_indicator_maps(
             edges,
             colours: &colours,
         };
-        let to = (dir.join(name), dpi);
-        write_banded_map(r, v, &bands, (&codes, &counts), &title, (&to.0, to.1))?;
+        let to = MapFile { dir, name, dpi };
+        write_banded_map(r, v, &bands, classes, title, to)?;
     }
     Ok(())
 }

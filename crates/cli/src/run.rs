@@ -422,17 +422,22 @@ const MEGNO_RANGES: [f64; 4] = [1.5, 2.5, 4.0, 10.0];
 /// the range of MEGNO's ⟨Y⟩ they fall in ([`MEGNO_RANGES`]), for reading how often the two
 /// indicators agree.
 fn megno_vs_sali(r: &RunResult) -> Option<Value> {
-    let values = r.indicator_values()?;
-    let k = INDICATORS
-        .iter()
-        .position(|(n, _)| *n == "megno_mean")
-        .expect("a listed indicator");
-    let codes = r.class_codes();
+    if !r.indicators {
+        return None;
+    }
+    let g = &r.grid;
     let mut counts = [[0u64; MEGNO_RANGES.len() + 1]; 3];
-    for (cell, &code) in codes.iter().enumerate() {
-        if (1..=3).contains(&code) {
-            let y = values[k][cell];
-            counts[usize::from(code) - 1][MEGNO_RANGES.partition_point(|&e| e <= y)] += 1;
+    for cell in (0..g.cells() as u32).filter(|&c| g.is_compatible(c)) {
+        let l = r
+            .ledger
+            .label(cell)
+            .expect("every compatible cell is labelled");
+        if let (Some(class), Some(v)) = (l.class, l.indicators) {
+            let row = Class::ALL
+                .iter()
+                .position(|&c| c == class)
+                .expect("a class");
+            counts[row][MEGNO_RANGES.partition_point(|&e| e <= v.megno_mean)] += 1;
         }
     }
     Some(json!({
@@ -745,16 +750,16 @@ fn write_arrays_and_map(job: &JobSpec, r: &RunResult, dir: &Path, dpi: u32) -> C
         .map_err(|e| runtime("writing class.npy", e))?;
     write_npy_f64(&dir.join("sali.npy"), &shape, &sali)
         .map_err(|e| runtime("writing sali.npy", e))?;
-    crate::maps::write_maps(job, r, &sali, dir, dpi)?;
-    if let Some(values) = r.indicator_values() {
-        for ((name, _), v) in INDICATORS.iter().zip(&values) {
+    let indicators = r.indicator_values();
+    if let Some(values) = &indicators {
+        for ((name, _), v) in INDICATORS.iter().zip(values) {
             let file = format!("{name}.npy");
             write_npy_f64(&dir.join(&file), &shape, v)
                 .map_err(|e| runtime(&format!("writing {file}"), e))?;
         }
-        crate::maps::write_indicator_maps(job, r, &values, dir, dpi)?;
     }
-    crate::dataset::write_results_nc(job, r, &job.source, dir)?;
+    crate::maps::write_maps(job, r, &sali, indicators.as_deref(), (dir, dpi))?;
+    crate::dataset::write_results_nc(job, r, indicators.as_deref(), dir)?;
     let mut run = run_json(r);
     run["spec"] = job.source.clone();
     run["versions"] = json!({ "salient": env!("CARGO_PKG_VERSION") });

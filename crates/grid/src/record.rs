@@ -7,9 +7,8 @@
 use crate::ledger::{CellIndicators, Outcome};
 use salient_core::orbit::{Class, Status};
 
-/// A status's code is its place here, a class's its place here plus one (0: no class).
-const STATUSES: [Status; 6] = Status::ALL;
-const CLASSES: [Class; 3] = Class::ALL;
+// A status's code is its place in `Status::ALL`, a class's its place in `Class::ALL` plus one
+// (0: no class).
 
 /// Bytes before a record's payload: its length (u32) and FNV-1a 64 checksum (u64).
 const FRAME: usize = 12;
@@ -22,14 +21,14 @@ fn fnv1a(bytes: &[u8]) -> u64 {
 
 fn class_code(c: Option<Class>) -> u8 {
     c.map_or(0, |c| {
-        CLASSES.iter().position(|&k| k == c).unwrap_or(0) as u8 + 1
+        Class::ALL.iter().position(|&k| k == c).unwrap_or(0) as u8 + 1
     })
 }
 
 fn class_of(code: u8) -> Option<Option<Class>> {
     match code {
         0 => Some(None),
-        k => CLASSES.get(usize::from(k) - 1).map(|&c| Some(c)),
+        k => Class::ALL.get(usize::from(k) - 1).map(|&c| Some(c)),
     }
 }
 
@@ -39,7 +38,7 @@ pub fn encode_record(outcomes: &[Outcome]) -> Vec<u8> {
     for o in outcomes {
         p.extend(o.cell.to_le_bytes());
         p.push(class_code(o.class));
-        let status = STATUSES.iter().position(|&s| s == o.status).unwrap_or(0);
+        let status = Status::ALL.iter().position(|&s| s == o.status).unwrap_or(0);
         p.push(status as u8);
         p.extend(o.sali.to_bits().to_le_bytes());
         p.extend(o.steps.to_le_bytes());
@@ -119,7 +118,7 @@ fn decode_payload(payload: &[u8]) -> Option<Vec<Outcome>> {
     while !r.0.is_empty() {
         let cell = r.u32()?;
         let class = class_of(r.u8()?)?;
-        let status = *STATUSES.get(usize::from(r.u8()?))?;
+        let status = *Status::ALL.get(usize::from(r.u8()?))?;
         let (sali, steps, t_end) = (r.f64()?, r.u64()?, r.f64()?);
         let n = r.u32()? as usize;
         let visited = (0..n).map(|_| r.u32()).collect::<Option<Vec<_>>>()?;

@@ -412,10 +412,9 @@ pub fn run_embedded_forecast(
     mode: Mode,
     window: usize,
     forecast: Option<&Forecast>,
-    mut progress: impl FnMut(&Ledger) + Send,
+    progress: impl FnMut(&Ledger) + Send,
 ) -> Ledger {
-    let start = Vec::new();
-    run_embedded_with(grid, cell_run, mode, window, forecast, start, &mut progress)
+    run_embedded_resumed(grid, cell_run, mode, window, forecast, Vec::new(), progress)
 }
 
 /// [`run_embedded_forecast`] going on from `committed`: outcomes an earlier process committed
