@@ -372,21 +372,13 @@ fn run_one(
 
 /// Percentages of regular, sticky and chaotic cells among the cells labelled so far.
 fn running_percent(grid: &Grid, ledger: &Ledger) -> (f64, f64, f64) {
-    let mut counts = [0u64; 3];
-    let mut labelled = 0u64;
+    let mut so_far = Counts::default();
     for cell in (0..grid.cells() as u32).filter(|&c| grid.is_compatible(c)) {
         if let Some(l) = ledger.label(cell) {
-            labelled += 1;
-            match l.class {
-                Some(Class::Regular) => counts[0] += 1,
-                Some(Class::Sticky) => counts[1] += 1,
-                Some(Class::Chaotic) => counts[2] += 1,
-                None => {}
-            }
+            so_far.add(l.class, l.status);
         }
     }
-    let pct = |n: u64| 100.0 * n as f64 / labelled.max(1) as f64;
-    (pct(counts[0]), pct(counts[1]), pct(counts[2]))
+    so_far.percent()
 }
 
 /// The codes of class.npy: what each [`RunResult::class_codes`] value means.
