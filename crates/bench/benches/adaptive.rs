@@ -1,13 +1,15 @@
 //! ns per step of the adaptive integrators on R1 with 2 deviation vectors (12 ODEs), natural
-//! steps, and ns per right-hand-side evaluation (DOP853 makes 12 per accepted step).
+//! steps, and ns per right-hand-side evaluation (DOP853 makes 12 per accepted step). The
+//! `polynomial` cases run Hénon–Heiles given as text through the polynomial path.
 
 use salient_bench::Harness;
 use salient_core::dd::DoubleDouble;
 use salient_core::dop853::{rhs, Dop853, Dop853Config};
 use salient_core::orbit::initial_vectors;
+use salient_core::polynomial::{Polynomial, PolynomialSystem};
 use salient_core::section::on_section;
 use salient_core::tangent::Phase;
-use salient_core::taylor::Taylor;
+use salient_core::taylor::{Taylor, TaylorSeries};
 use salient_core::{Deviation, HenonHeiles};
 use std::hint::black_box;
 
@@ -21,16 +23,26 @@ fn r1() -> Phase<f64, 2, 2> {
 
 fn main() {
     let h = Harness::from_args();
-    h.case("adaptive/rhs-evaluation", 1, "evaluation", || {
-        rhs(&HenonHeiles, black_box(&r1()))
-    });
+    let text =
+        PolynomialSystem::new(Polynomial::parse("(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3", 2).unwrap());
+    system(&h, &HenonHeiles, "");
+    system(&h, &text, "/polynomial");
+}
+
+fn system<H: TaylorSeries<2>>(h: &Harness, ham: &H, label: &str) {
+    h.case(
+        &format!("adaptive/rhs-evaluation{label}"),
+        1,
+        "evaluation",
+        || rhs(ham, black_box(&r1())),
+    );
     for delta in [1e-10, 1e-13] {
         h.case(
-            &format!("adaptive/dop853-step/{delta:e}"),
+            &format!("adaptive/dop853-step/{delta:e}{label}"),
             STEPS,
             "step",
             || {
-                let mut d = Dop853::new(&HenonHeiles, Dop853Config::with_delta(delta), 0.0, r1());
+                let mut d = Dop853::new(ham, Dop853Config::with_delta(delta), 0.0, r1());
                 for _ in 0..STEPS {
                     d.step(f64::INFINITY, None).unwrap();
                 }
@@ -40,11 +52,11 @@ fn main() {
     }
     for delta in [1e-10, 1e-15] {
         h.case(
-            &format!("adaptive/taylor-step/{delta:e}"),
+            &format!("adaptive/taylor-step/{delta:e}{label}"),
             STEPS,
             "step",
             || {
-                let mut t = Taylor::new(&HenonHeiles, delta, 0.0, r1());
+                let mut t = Taylor::new(ham, delta, 0.0, r1());
                 for _ in 0..STEPS {
                     t.step(f64::INFINITY).unwrap();
                 }
@@ -59,11 +71,16 @@ fn main() {
         dq: y.dq.map(|v| v.map(DoubleDouble::from_f64)),
         dp: y.dp.map(|v| v.map(DoubleDouble::from_f64)),
     };
-    h.case("adaptive/taylor-dd-step/1e-28", 100, "step", || {
-        let mut t = Taylor::new(&HenonHeiles, 1e-28, 0.0, dd);
-        for _ in 0..100 {
-            t.step(f64::INFINITY).unwrap();
-        }
-        t.t()
-    });
+    h.case(
+        &format!("adaptive/taylor-dd-step/1e-28{label}"),
+        100,
+        "step",
+        || {
+            let mut t = Taylor::new(ham, 1e-28, 0.0, dd);
+            for _ in 0..100 {
+                t.step(f64::INFINITY).unwrap();
+            }
+            t.t()
+        },
+    );
 }

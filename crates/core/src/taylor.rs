@@ -151,34 +151,30 @@ pub fn cauchy<T: Real>(a: &Series<T>, b: &Series<T>, k: usize) -> T {
 /// Hamiltonians whose ∇V is a polynomial, so its series along a solution is a finite
 /// combination of Cauchy products.
 pub trait TaylorSeries<const N: usize>: Hamiltonian<N> {
-    /// Coefficient k of ∇V(q(t)), given the coefficients 0..=k of q.
-    fn grad_coeff<T: Real>(&self, q: &[Series<T>; N], k: usize) -> [T; N];
-    /// Coefficient k of D²V(q(t))·u(t), given the coefficients 0..=k of q and u.
-    fn hess_vec_coeff<T: Real>(&self, q: &[Series<T>; N], u: &[Series<T>; N], k: usize) -> [T; N];
-    /// Coefficient k of ∇V and of D²V·u for every deviation vector u, the same numbers as
-    /// [`Self::grad_coeff`] and [`Self::hess_vec_coeff`]; an implementation may compute them
-    /// in one pass, so that the independent sums overlap. Called for k = 0, 1, 2, … in turn
-    /// with the same `derived`: series of q an implementation may fill at order k and read at
-    /// every later order (instead of recomputing them for each).
-    #[inline(always)]
+    /// How many series of q [`Self::all_coeffs`] keeps across orders (the length of its
+    /// `derived`).
+    fn derived_series(&self) -> usize {
+        0
+    }
+
+    /// Coefficient k of ∇V(q(t)) and of D²V(q(t))·u(t) for every deviation vector u, given the
+    /// coefficients 0..=k of q and u. Called for k = 0, 1, 2, … in turn with the same
+    /// `derived` ([`Self::derived_series`] long): series of q an implementation fills at order
+    /// k and reads at every later order (products of coordinates, instead of recomputing them
+    /// for each).
     fn all_coeffs<T: Real, const K: usize>(
         &self,
         q: &[Series<T>; N],
         u: &[[Series<T>; N]; K],
-        derived: &mut [Series<T>; 2],
+        derived: &mut [Series<T>],
         k: usize,
-    ) -> ([T; N], [[T; N]; K]) {
-        let _ = derived;
-        (
-            self.grad_coeff(q, k),
-            core::array::from_fn(|v| self.hess_vec_coeff(q, &u[v], k)),
-        )
-    }
+    ) -> ([T; N], [[T; N]; K]);
 }
 
-impl TaylorSeries<2> for HenonHeiles {
+impl HenonHeiles {
     #[inline(always)]
-    fn grad_coeff<T: Real>(&self, q: &[Series<T>; 2], k: usize) -> [T; 2] {
+    /// Coefficient k of ∇V(q(t)), given the coefficients 0..=k of q.
+    pub fn grad_coeff<T: Real>(&self, q: &[Series<T>; 2], k: usize) -> [T; 2] {
         // ∇V = (q1 + 2 q1 q2, q2 + q1² − q2²) = (q1 + 2 q1 q2, q2 + (q1 − q2)(q1 + q2)). The
         // products are summed in one pass so their chains of fused multiply-adds interleave.
         let (a, b) = (&q[0], &q[1]);
@@ -191,7 +187,13 @@ impl TaylorSeries<2> for HenonHeiles {
     }
 
     #[inline(always)]
-    fn hess_vec_coeff<T: Real>(&self, q: &[Series<T>; 2], u: &[Series<T>; 2], k: usize) -> [T; 2] {
+    /// Coefficient k of D²V(q(t))·u(t), given the coefficients 0..=k of q and u.
+    pub fn hess_vec_coeff<T: Real>(
+        &self,
+        q: &[Series<T>; 2],
+        u: &[Series<T>; 2],
+        k: usize,
+    ) -> [T; 2] {
         // D²V u = (u1 + 2 (q2 u1 + q1 u2), u2 + 2 (q1 u1 − q2 u2)), the sums in one pass.
         let (a, b, x, y) = (&q[0], &q[1], &u[0], &u[1]);
         let (mut s1, mut s2) = (b[0] * x[k] + a[0] * y[k], a[0] * x[k] - b[0] * y[k]);
@@ -202,13 +204,19 @@ impl TaylorSeries<2> for HenonHeiles {
         let two = T::splat(2.0);
         [two.mul_add(s1, x[k]), two.mul_add(s2, y[k])]
     }
+}
+
+impl TaylorSeries<2> for HenonHeiles {
+    fn derived_series(&self) -> usize {
+        2
+    }
 
     #[inline(always)]
     fn all_coeffs<T: Real, const K: usize>(
         &self,
         q: &[Series<T>; 2],
         u: &[[Series<T>; 2]; K],
-        derived: &mut [Series<T>; 2],
+        derived: &mut [Series<T>],
         k: usize,
     ) -> ([T; 2], [[T; 2]; K]) {
         // The sums of grad_coeff and of every hess_vec_coeff in one pass over j, each summed
@@ -217,9 +225,12 @@ impl TaylorSeries<2> for HenonHeiles {
         // kept as series (`derived`): grad_coeff forms them afresh for every product, which
         // in double-double is a visible share of the step (figures: docs/performance.md).
         let (a, b) = (&q[0], &q[1]);
-        derived[0][k] = a[k] - b[k];
-        derived[1][k] = a[k] + b[k];
-        let (dif, sum) = (&derived[0], &derived[1]);
+        let [dif, sum, ..] = derived else {
+            panic!("Hénon–Heiles keeps two derived series")
+        };
+        dif[k] = a[k] - b[k];
+        sum[k] = a[k] + b[k];
+        let (dif, sum) = (&*dif, &*sum);
         let (mut s12, mut sd) = (a[0] * b[k], dif[0] * sum[k]);
         // Plain loops rather than `array::from_fn`: the compiler may outline an array builder,
         // and a call in this loop costs a `vzeroupper` and stalls store forwarding, a large
@@ -250,7 +261,7 @@ impl TaylorSeries<2> for HenonHeiles {
 }
 
 /// The Taylor coefficients of a phase point and its deviation vectors.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct Jet<T: Real, const N: usize, const K: usize> {
     pub q: [Series<T>; N],
     pub p: [Series<T>; N],
@@ -260,8 +271,9 @@ pub struct Jet<T: Real, const N: usize, const K: usize> {
     /// 1/(k + 1) in `T`'s precision, computed once (a double-double division is dozens of
     /// operations, and the recursion needs one per order and step).
     inverse: Series<T>,
-    /// Series of q that [`TaylorSeries::all_coeffs`] keeps across orders.
-    derived: [Series<T>; 2],
+    /// Series of q that [`TaylorSeries::all_coeffs`] keeps across orders (as many as the
+    /// system asks for, allocated at the first [`Jet::compute`]).
+    derived: Vec<Series<T>>,
     /// The first order computed in `T::Lead` (see [`lead_order`]); beyond the order, none.
     lead_from: usize,
     /// The coefficients in `T::Lead` from order `lead_from − 1` on (below it, while
@@ -270,14 +282,14 @@ pub struct Jet<T: Real, const N: usize, const K: usize> {
 }
 
 /// The series a [`Jet`] keeps in its leading word's type.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 struct LeadSeries<B, const N: usize, const K: usize> {
     q: [Series<B>; N],
     p: [Series<B>; N],
     dq: [[Series<B>; N]; K],
     dp: [[Series<B>; N]; K],
     inverse: Series<B>,
-    derived: [Series<B>; 2],
+    derived: Vec<Series<B>>,
 }
 
 /// How far below δ the rounding of the orders computed in f64 stays (see [`lead_order`]).
@@ -328,7 +340,7 @@ impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
             dp: [z; K],
             order: 0,
             inverse: core::array::from_fn(|k| T::ratio(1.0, (k + 1) as f64)),
-            derived: [[T::splat(0.0); P_MAX + 1]; 2],
+            derived: Vec::new(),
             lead_from: usize::MAX,
             lead: LeadSeries {
                 q: zl,
@@ -336,7 +348,7 @@ impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
                 dq: [zl; K],
                 dp: [zl; K],
                 inverse: core::array::from_fn(|k| T::Lead::ratio(1.0, (k + 1) as f64)),
-                derived: [[T::Lead::splat(0.0); P_MAX + 1]; 2],
+                derived: Vec::new(),
             },
         }
     }
@@ -354,6 +366,11 @@ impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
     pub fn compute<H: TaylorSeries<N>>(&mut self, ham: &H, y: &Phase<T, N, K>, p: usize) {
         assert!(p <= P_MAX);
         self.order = p;
+        let derived = ham.derived_series();
+        if self.derived.len() != derived {
+            self.derived = vec![[T::splat(0.0); P_MAX + 1]; derived];
+            self.lead.derived = vec![[T::Lead::splat(0.0); P_MAX + 1]; derived];
+        }
         for i in 0..N {
             self.q[i][0] = y.q[i];
             self.p[i][0] = y.p[i];
@@ -396,8 +413,8 @@ impl<T: Real, const N: usize, const K: usize> Jet<T, N, K> {
             }
         }
         for j in 0..k0 {
-            for d in 0..2 {
-                lead.derived[d][j] = self.derived[d][j].lead();
+            for (lead, derived) in lead.derived.iter_mut().zip(&self.derived) {
+                lead[j] = derived[j].lead();
             }
         }
         for k in k0..p {
@@ -1044,6 +1061,7 @@ mod tests {
                 core::array::from_fn(|_| core::array::from_fn(|_| next()))
             });
             let mut derived = [[T::splat(0.0); P_MAX + 1]; 2];
+            assert_eq!(HenonHeiles.derived_series(), derived.len());
             for k in 0..12 {
                 let (g, h) = HenonHeiles.all_coeffs(&q, &u, &mut derived, k);
                 assert_eq!(g, HenonHeiles.grad_coeff(&q, k), "k = {k}");

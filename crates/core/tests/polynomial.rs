@@ -4,9 +4,15 @@
 
 use crate::common::{c1, r1, ENERGY};
 use crate::integrators::assert_jacobian_and_symplectic;
-use salient_core::orbit::{integrate, Class, OrbitConfig, Requests};
+use salient_core::adaptive::Protocol;
+use salient_core::dd::DoubleDouble;
+use salient_core::dop853::{Dop853, Dop853Config};
+use salient_core::orbit::{initial_vectors, integrate, Class, OrbitConfig, OrbitResult, Requests};
 use salient_core::polynomial::{Polynomial, PolynomialSystem};
-use salient_core::{Hamiltonian, HenonHeiles, Scheme, TangentMap};
+use salient_core::real::Real;
+use salient_core::run::{run_orbit, MethodRun};
+use salient_core::taylor::{Series, Taylor, TaylorSeries, P_MAX};
+use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method, Phase, Scheme, TangentMap};
 
 fn system(text: &str) -> PolynomialSystem<2> {
     PolynomialSystem::new(Polynomial::parse(text, 2).unwrap())
@@ -50,5 +56,215 @@ fn the_tangent_map_of_another_potential_is_the_jacobian_and_symplectic() {
             let label = format!("{} τ={tau}", scheme.name);
             assert_jacobian_and_symplectic(&map, ([0.2, -0.15], [0.3, 0.25]), tau, &label);
         }
+    }
+}
+
+/// A bounded random potential in `N` coordinates: ½ Σ ω_i q_i² + ¼ Σ q_i⁴ plus random cubic
+/// and quartic couplings with coefficients in [−0.2, 0.2].
+fn random_system<const N: usize>(seed: u64) -> PolynomialSystem<N> {
+    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut text = String::new();
+    for i in 1..=N {
+        text += &format!("+ {}*q{i}^2/2 + q{i}^4/4 ", 0.6 + next());
+    }
+    for _ in 0..6 {
+        let c = 0.4 * next() - 0.2;
+        let (i, j) = (
+            1 + (next() * N as f64) as usize,
+            1 + (next() * N as f64) as usize,
+        );
+        let (a, b) = (1 + (next() * 2.0) as u32, 1 + (next() * 2.0) as u32);
+        text += &format!("+ ({c})*q{i}^{a}*q{j}^{b} ");
+    }
+    PolynomialSystem::new(Polynomial::parse(&text, N).unwrap())
+}
+
+/// Max-norm distance between two phase points with their deviation vectors, relative to the
+/// larger component.
+fn phase_distance<const N: usize, const K: usize>(
+    a: &Phase<f64, N, K>,
+    b: &Phase<f64, N, K>,
+) -> f64 {
+    let (mut d, mut size) = (0.0f64, 1.0f64);
+    a.zip_for_each(b, |x, y| {
+        d = d.max((x - y).abs());
+        size = size.max(x.abs());
+    });
+    d / size
+}
+
+/// The Taylor recursion generated from a random polynomial (Cauchy products planned from its
+/// monomials) integrates the orbit and its deviation vectors as DOP853 does at a tight
+/// tolerance, in 2 and 3 degrees of freedom, in f64 and in double-double.
+#[test]
+fn taylor_series_of_a_random_polynomial_agree_with_dop853() {
+    fn check<const N: usize>(seed: u64) {
+        let ham = random_system::<N>(seed);
+        let (dq, dp) = initial_vectors::<N, 2>(Deviation::Axes);
+        let q = core::array::from_fn(|i| 0.3 - 0.1 * i as f64);
+        let p = core::array::from_fn(|i| 0.2 + 0.05 * i as f64);
+        let y = Phase { q, p, dq, dp };
+        let t_end = 20.0;
+        let mut dop = Dop853::new(&ham, Dop853Config::with_delta(1e-13), 0.0, y);
+        while dop.t < t_end {
+            dop.step(t_end, None).unwrap();
+        }
+        let mut taylor = Taylor::new(&ham, 1e-15, 0.0, y);
+        while taylor.t() < t_end {
+            taylor.step(t_end).unwrap();
+        }
+        let d = phase_distance(&taylor.interpolate(t_end), &dop.y);
+        assert!(
+            d < 1e-9,
+            "{N} dof, seed {seed}: Taylor against DOP853 {d:e}"
+        );
+        let ydd = Phase {
+            q: q.map(DoubleDouble::from_f64),
+            p: p.map(DoubleDouble::from_f64),
+            dq: dq.map(|v| v.map(DoubleDouble::from_f64)),
+            dp: dp.map(|v| v.map(DoubleDouble::from_f64)),
+        };
+        let mut dd = Taylor::new(&ham, 1e-15, 0.0, ydd);
+        while dd.t() < t_end {
+            dd.step(t_end).unwrap();
+        }
+        let end = dd.interpolate(t_end);
+        let end = Phase {
+            q: end.q.map(|x| x.to_f64()),
+            p: end.p.map(|x| x.to_f64()),
+            dq: end.dq.map(|v| v.map(|x| x.to_f64())),
+            dp: end.dp.map(|v| v.map(|x| x.to_f64())),
+        };
+        let d = phase_distance(&end, &dop.y);
+        assert!(
+            d < 1e-9,
+            "{N} dof, seed {seed}: taylor-dd against DOP853 {d:e}"
+        );
+    }
+    for seed in [1, 2, 3] {
+        check::<2>(seed);
+        check::<3>(seed + 10);
+    }
+}
+
+/// Hénon–Heiles as text runs R1 and C1 with DOP853, f64 Taylor and taylor-dd as the built-in
+/// does: the same classes and statuses, R1's SALI within 1e-10.
+#[test]
+fn henon_heiles_as_text_runs_every_adaptive_method_as_the_built_in() {
+    let text = system("(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3");
+    let config = OrbitConfig::new(0.05, 1e3);
+    for method in [Method::Dop853, Method::Taylor, Method::TaylorDd] {
+        let run = MethodRun {
+            method: method.clone(),
+            delta: Some(1e-10),
+            protocol: Protocol::Restart,
+        };
+        for (name, x) in [("R1", r1()), ("C1", c1())] {
+            let requests = Requests::default();
+            let a: OrbitResult<2> =
+                run_orbit::<_, 2, 2>(&HenonHeiles, &run, ENERGY, x.0, x.1, &config, &requests);
+            let b = run_orbit::<_, 2, 2>(&text, &run, ENERGY, x.0, x.1, &config, &requests);
+            let label = format!("{method:?} {name}");
+            assert_eq!((a.class, a.status), (b.class, b.status), "{label}");
+            if a.class == Some(Class::Regular) {
+                assert!(
+                    (a.sali - b.sali).abs() < 1e-10,
+                    "{label}: {} {}",
+                    a.sali,
+                    b.sali
+                );
+            }
+        }
+    }
+}
+
+/// The Hénon–Heiles text's planned Taylor coefficients equal the built-in's hand-written
+/// recursion to rounding, order by order, for arbitrary series.
+#[test]
+fn planned_taylor_coefficients_equal_the_hand_written_ones() {
+    let text = system("(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3");
+    let mut x = 0.3f64;
+    let mut next = || {
+        x = (x * 3.7 + 0.19).fract();
+        2.0 * x - 1.0
+    };
+    let q: [Series<f64>; 2] = core::array::from_fn(|_| core::array::from_fn(|_| next()));
+    let u: [[Series<f64>; 2]; 3] =
+        core::array::from_fn(|_| core::array::from_fn(|_| core::array::from_fn(|_| next())));
+    let mut mine = vec![[0.0; P_MAX + 1]; HenonHeiles.derived_series()];
+    let mut theirs = vec![[0.0; P_MAX + 1]; text.derived_series()];
+    for k in 0..20 {
+        let (g, h) = HenonHeiles.all_coeffs(&q, &u, &mut mine, k);
+        let (gt, ht) = text.all_coeffs(&q, &u, &mut theirs, k);
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-13 * (1.0 + a.abs());
+        for i in 0..2 {
+            assert!(close(g[i], gt[i]), "k {k} ∇V_{i}: {} {}", g[i], gt[i]);
+            for v in 0..3 {
+                assert!(close(h[v][i], ht[v][i]), "k {k} vector {v} row {i}");
+            }
+        }
+    }
+}
+
+/// The compiled corrector terms equal their composition from the gradient, the Hessian and the
+/// third derivatives (the trait's defaults), and the derivative bounds hold on a ball: in 3
+/// degrees of freedom, on a random system.
+#[test]
+fn compiled_corrector_terms_and_bounds_hold_on_a_random_system() {
+    struct Composed<'a>(&'a PolynomialSystem<3>);
+    impl Hamiltonian<3> for Composed<'_> {
+        fn name(&self) -> &'static str {
+            "composed"
+        }
+        fn potential<T: Real>(&self, q: &[T; 3]) -> T {
+            self.0.potential(q)
+        }
+        fn grad<T: Real>(&self, q: &[T; 3]) -> [T; 3] {
+            self.0.grad(q)
+        }
+        fn hess_vec<T: Real>(&self, q: &[T; 3], u: &[T; 3]) -> [T; 3] {
+            self.0.hess_vec(q, u)
+        }
+        fn third_vec<T: Real>(&self, q: &[T; 3], w: &[T; 3], u: &[T; 3]) -> [T; 3] {
+            self.0.third_vec(q, w, u)
+        }
+    }
+    let ham = random_system::<3>(7);
+    let composed = Composed(&ham);
+    let norm = |v: [f64; 3]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let frobenius = |m: [[f64; 3]; 3]| m.iter().map(|r| norm(*r).powi(2)).sum::<f64>().sqrt();
+    let r = 0.8;
+    let bounds = ham.derivative_bounds(r).unwrap();
+    for i in 0..200 {
+        let s = i as f64;
+        let dir = [
+            (0.7 * s).sin(),
+            (1.3 * s + 0.2).cos(),
+            (0.37 * s).sin() - 0.3,
+        ];
+        let scale = r * ((i % 10) as f64 + 1.0) / 10.0 / norm(dir);
+        let q = dir.map(|x| x * scale);
+        let (gk, hk) = (ham.corrector_grad(&q), ham.corrector_hessian(&q));
+        let (gk2, hk2) = (composed.corrector_grad(&q), composed.corrector_hessian(&q));
+        for a in 0..3 {
+            assert!(
+                (gk[a] - gk2[a]).abs() <= 1e-12 * (1.0 + gk2[a].abs()),
+                "∇K at {q:?}"
+            );
+            for b in 0..3 {
+                assert!((hk[a][b] - hk2[a][b]).abs() <= 1e-12 * (1.0 + hk2[a][b].abs()));
+            }
+        }
+        // Frobenius norms bound the spectral ones the bounds are for.
+        assert!(norm(ham.grad(&q)) <= bounds.grad);
+        assert!(frobenius(ham.hessian(&q)) <= bounds.hessian);
+        assert!(norm(gk) <= bounds.corrector_grad);
+        assert!(frobenius(hk) <= bounds.corrector_hessian);
     }
 }

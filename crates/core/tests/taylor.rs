@@ -34,16 +34,17 @@ impl Hamiltonian<1> for Gravity {
 }
 
 impl TaylorSeries<1> for Gravity {
-    fn grad_coeff<T: Real>(&self, _q: &[Series<T>; 1], k: usize) -> [T; 1] {
-        [T::splat(if k == 0 { G } else { 0.0 })]
-    }
-    fn hess_vec_coeff<T: Real>(
+    fn all_coeffs<T: Real, const K: usize>(
         &self,
         _q: &[Series<T>; 1],
-        _u: &[Series<T>; 1],
-        _k: usize,
-    ) -> [T; 1] {
-        [T::splat(0.0)]
+        _u: &[[Series<T>; 1]; K],
+        _derived: &mut [Series<T>],
+        k: usize,
+    ) -> ([T; 1], [[T; 1]; K]) {
+        (
+            [T::splat(if k == 0 { G } else { 0.0 })],
+            [[T::splat(0.0)]; K],
+        )
     }
 }
 

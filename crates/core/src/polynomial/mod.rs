@@ -3,8 +3,12 @@
 //! ([`PolynomialSystem`]) the integrators run on. Terms are kept merged and
 //! sorted by their powers, so equal polynomials compare equal however they were written.
 
-use crate::hamiltonian::Hamiltonian;
 use crate::real::Real;
+
+mod program;
+mod system;
+
+pub use system::PolynomialSystem;
 
 /// One monomial: `coeff` · Π q_i^powers[i].
 #[derive(Clone, Debug, PartialEq)]
@@ -61,6 +65,11 @@ impl Polynomial {
     /// The number of variables.
     pub fn dof(&self) -> usize {
         self.dof
+    }
+
+    /// The terms as (coefficient, powers of q1…q_dof), sorted by their powers.
+    pub fn terms(&self) -> impl Iterator<Item = (f64, &[u32])> {
+        self.terms.iter().map(|t| (t.coeff, t.powers.as_slice()))
     }
 
     /// The largest total degree of a term (0 for a constant, and for zero).
@@ -383,90 +392,10 @@ impl Parser {
     }
 }
 
-/// The system H = ½|p|² + V(q) of a polynomial potential in `N` degrees of freedom, with every
-/// derivative the integrators ask for derived once, exactly, when it is made.
-#[derive(Clone, Debug, PartialEq)]
-pub struct PolynomialSystem<const N: usize> {
-    potential: Polynomial,
-    /// ∂V/∂q_i.
-    grad: Vec<Polynomial>,
-    /// ∂²V/∂q_i∂q_j, row i.
-    hessian: Vec<Vec<Polynomial>>,
-    /// ∂³V/∂q_i∂q_j∂q_k at [i][j][k].
-    third: Vec<Vec<Vec<Polynomial>>>,
-}
-
-impl<const N: usize> PolynomialSystem<N> {
-    /// The system of `potential`, a polynomial in q1…qN.
-    pub fn new(potential: Polynomial) -> Self {
-        assert_eq!(potential.dof(), N, "a potential in {N} coordinates");
-        let grad: Vec<Polynomial> = (0..N).map(|i| potential.derivative(i)).collect();
-        let hessian: Vec<Vec<Polynomial>> = grad
-            .iter()
-            .map(|g| (0..N).map(|j| g.derivative(j)).collect())
-            .collect();
-        let third = hessian
-            .iter()
-            .map(|row| {
-                row.iter()
-                    .map(|h| (0..N).map(|k| h.derivative(k)).collect())
-                    .collect()
-            })
-            .collect();
-        PolynomialSystem {
-            potential,
-            grad,
-            hessian,
-            third,
-        }
-    }
-}
-
-impl<const N: usize> Hamiltonian<N> for PolynomialSystem<N> {
-    fn name(&self) -> &'static str {
-        "polynomial"
-    }
-
-    fn potential<T: Real>(&self, q: &[T; N]) -> T {
-        self.potential.eval(q)
-    }
-
-    fn grad<T: Real>(&self, q: &[T; N]) -> [T; N] {
-        core::array::from_fn(|i| self.grad[i].eval(q))
-    }
-
-    fn hess_vec<T: Real>(&self, q: &[T; N], u: &[T; N]) -> [T; N] {
-        let h = self.hessian(q);
-        core::array::from_fn(|i| {
-            let mut s = T::splat(0.0);
-            for j in 0..N {
-                s = h[i][j].mul_add(u[j], s);
-            }
-            s
-        })
-    }
-
-    fn hessian<T: Real>(&self, q: &[T; N]) -> [[T; N]; N] {
-        core::array::from_fn(|i| core::array::from_fn(|j| self.hessian[i][j].eval(q)))
-    }
-
-    fn third_vec<T: Real>(&self, q: &[T; N], w: &[T; N], u: &[T; N]) -> [T; N] {
-        core::array::from_fn(|i| {
-            let mut s = T::splat(0.0);
-            for j in 0..N {
-                for k in 0..N {
-                    s = self.third[i][j][k].eval(q).mul_add(w[j] * u[k], s);
-                }
-            }
-            s
-        })
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::HenonHeiles;
+    use crate::{Hamiltonian, HenonHeiles};
 
     const HENON_HEILES: &str = "(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3";
 
