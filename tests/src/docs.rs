@@ -78,6 +78,37 @@ pub fn command_lines(body: &str) -> Vec<String> {
         .collect()
 }
 
+/// The words of a command line as a shell splits them: at white space, except inside single or
+/// double quotes, which are removed.
+pub fn shell_words(line: &str) -> Vec<String> {
+    let mut words = Vec::new();
+    let (mut word, mut quote, mut started) = (String::new(), None, false);
+    for c in line.chars() {
+        match (quote, c) {
+            (Some(q), c) if c == q => quote = None,
+            (Some(_), c) => word.push(c),
+            (None, '"' | '\'') => {
+                quote = Some(c);
+                started = true;
+            }
+            (None, c) if c.is_whitespace() => {
+                if started {
+                    words.push(std::mem::take(&mut word));
+                    started = false;
+                }
+            }
+            (None, c) => {
+                word.push(c);
+                started = true;
+            }
+        }
+    }
+    if started {
+        words.push(word);
+    }
+    words
+}
+
 /// The inline code spans of a text outside its fenced blocks, a span broken over lines joined
 /// with a space.
 pub fn inline_code(text: &str) -> Vec<String> {

@@ -13,6 +13,7 @@ mod indicators_cli;
 mod maps_cli;
 mod orbit_cli;
 mod plain_c_cli;
+mod polynomial_cli;
 mod precision_cli;
 mod readme_cli;
 mod results_nc_cli;

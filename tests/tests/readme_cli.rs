@@ -4,7 +4,7 @@
 //! are named here and checked otherwise (the distributed tests run those commands; a spec that
 //! takes hours is parsed, not run).
 
-use salient_tests::docs::{read, root, sh_lines};
+use salient_tests::docs::{read, root, sh_lines, shell_words};
 use salient_tests::{salient, salient_path};
 
 fn readme() -> String {
@@ -28,7 +28,8 @@ fn every_salient_example_in_the_readme_runs() {
     let dir = tempfile::tempdir().unwrap();
     let mut ran = 0;
     for line in sh_lines(&readme()) {
-        let words: Vec<&str> = line.split_whitespace().collect();
+        let words = shell_words(&line);
+        let words: Vec<&str> = words.iter().map(String::as_str).collect();
         // `salient ARGS…`, or `cargo run … -- ARGS…`.
         let rest = match words.as_slice() {
             ["salient", rest @ ..] => rest,

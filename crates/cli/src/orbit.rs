@@ -6,8 +6,8 @@ use crate::usage::{finite, positive, runtime, CliError, CliResult};
 use clap::{Args, ValueEnum};
 use salient_core::adaptive::Protocol as AdaptiveProtocol;
 use salient_core::orbit::{OrbitConfig, OrbitResult, Requests, Thresholds};
-use salient_core::run::{run_henon_heiles, MethodRun, Vectors};
-use salient_core::section::on_section;
+use salient_core::polynomial::{Polynomial, PolynomialSystem};
+use salient_core::run::{run_henon_heiles, MethodRun, PolynomialRun, Vectors, POLYNOMIAL_DOFS};
 use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method};
 use salient_report::{
     render_lines, render_loglog, render_panels, HLine, Line, LinePlot, LogLogPlot, Panels,
@@ -24,6 +24,9 @@ const MAX_STEPS: f64 = 1e12;
 /// Tolerance of the adaptive methods when --delta is not given.
 const DEFAULT_DELTA: f64 = 1e-10;
 
+/// Energy of an orbit started on the section when --energy is not given.
+const DEFAULT_ENERGY: f64 = 0.125;
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum Protocol {
     Restart,
@@ -39,15 +42,41 @@ pub enum DeviationKind {
 #[derive(Args, Debug)]
 #[command(allow_negative_numbers = true)]
 pub struct OrbitArgs {
-    /// q2 of the initial condition on the section q1 = 0 (p1 > 0 follows from the energy).
+    /// q2 of the initial condition on the section q1 = 0 (p1 > 0 follows from the energy);
+    /// systems of 2 degrees of freedom.
+    #[arg(long, required_unless_present = "q", requires = "p2", conflicts_with_all = ["q", "p"])]
+    q2: Option<f64>,
+    /// p2 of the initial condition on the section.
+    #[arg(long, requires = "q2")]
+    p2: Option<f64>,
+    /// The whole initial condition instead of --q2/--p2: q1,…,qN (with --p; the energy
+    /// follows from them).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "p"
+    )]
+    q: Option<Vec<f64>>,
+    /// p1,…,pN of the initial condition given by --q.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "q"
+    )]
+    p: Option<Vec<f64>>,
+    /// Energy H of the orbit started on the section [default: 0.125].
+    #[arg(long, conflicts_with = "q")]
+    energy: Option<f64>,
+    /// The potential V of H = ½|p|² + V(q): a polynomial in q1…qN (numbers, + - * /, integer
+    /// powers with ^ or **, parentheses), e.g. "(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3"
+    /// [default: Hénon–Heiles].
     #[arg(long)]
-    q2: f64,
-    /// p2 of the initial condition.
-    #[arg(long)]
-    p2: f64,
-    /// Energy H of the orbit.
-    #[arg(long, default_value_t = 0.125)]
-    energy: f64,
+    potential: Option<String>,
+    /// Degrees of freedom N of --potential: 2, 3 or 8.
+    #[arg(long, default_value_t = 2, requires = "potential")]
+    dof: usize,
     /// Integration method, e.g. tm-sbab2c, tm-srkn14a.
     #[arg(long)]
     method: String,
@@ -98,13 +127,15 @@ pub struct OrbitArgs {
 
 /// A validated orbit request.
 struct OrbitJob {
+    /// The potential given as text (`None`: the built-in Hénon–Heiles).
+    potential: Option<(String, Polynomial)>,
     method: Method,
     energy: f64,
     /// The tolerance in force (adaptive methods only).
     delta: Option<f64>,
     protocol: AdaptiveProtocol,
-    q: [f64; 2],
-    p: [f64; 2],
+    q: Vec<f64>,
+    p: Vec<f64>,
     config: OrbitConfig,
     requests: Requests,
     gali_all: bool,
@@ -123,9 +154,8 @@ impl OrbitJob {
 
 fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
     let method = Method::parse(&a.method).map_err(|e| CliError::Usage(format!("--method: {e}")))?;
-    let q2 = finite("--q2", a.q2)?;
-    let p2 = finite("--p2", a.p2)?;
-    let energy = finite("--energy", a.energy)?;
+    let potential = potential_of(a)?;
+    let (q, p, energy) = start_of(a, potential.as_ref().map(|(_, v)| v))?;
     let tau = positive("--tau", a.tau)?;
     if !(a.t_final.is_finite() && a.t_final >= tau) {
         return Err(CliError::Usage(format!(
@@ -180,13 +210,6 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
             a.samples_per_decade
         )));
     }
-    let (q, p) = on_section(&HenonHeiles, energy, &[q2], &[p2]).map_err(|_| {
-        let e_min = HenonHeiles.potential(&[0.0, q2]) + 0.5 * p2 * p2;
-        CliError::Usage(format!(
-            "--energy {energy}: (q2, p2) = ({q2}, {p2}) is not on the section q1 = 0, p1 > 0; \
-             allowed: --energy > {e_min} for this point"
-        ))
-    })?;
     let deviation = match a.deviation {
         DeviationKind::Axes => Deviation::Axes,
         DeviationKind::Random => Deviation::Random { seed: a.seed },
@@ -215,6 +238,7 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
         },
     };
     Ok(OrbitJob {
+        potential,
         method,
         energy,
         delta,
@@ -228,6 +252,70 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
     })
 }
 
+/// The potential of --potential in --dof coordinates, with its text.
+fn potential_of(a: &OrbitArgs) -> CliResult<Option<(String, Polynomial)>> {
+    let Some(text) = &a.potential else {
+        return Ok(None);
+    };
+    if !POLYNOMIAL_DOFS.contains(&a.dof) {
+        return Err(CliError::Usage(format!(
+            "--dof must be one of {POLYNOMIAL_DOFS:?} (got {})",
+            a.dof
+        )));
+    }
+    let v = Polynomial::parse(text, a.dof)
+        .map_err(|e| CliError::Usage(format!("--potential {text:?}: {e}")))?;
+    Ok(Some((text.clone(), v)))
+}
+
+/// The initial point (q, p) and its energy: from --q and --p, or on the section q1 = 0 from
+/// --q2, --p2 and --energy. `potential`: the polynomial potential, if any (else Hénon–Heiles).
+fn start_of(a: &OrbitArgs, potential: Option<&Polynomial>) -> CliResult<(Vec<f64>, Vec<f64>, f64)> {
+    let dof = potential.map_or(2, Polynomial::dof);
+    let v = |q: &[f64]| match potential {
+        Some(v) => v.eval(q),
+        None => HenonHeiles.potential(&[q[0], q[1]]),
+    };
+    if let (Some(q), Some(p)) = (&a.q, &a.p) {
+        for (flag, x) in [("--q", q), ("--p", p)] {
+            if x.len() != dof {
+                return Err(CliError::Usage(format!(
+                    "{flag} needs {dof} comma-separated numbers, one per degree of freedom (got {})",
+                    x.len()
+                )));
+            }
+            for &c in x {
+                finite(flag, c)?;
+            }
+        }
+        let energy = 0.5 * p.iter().map(|x| x * x).sum::<f64>() + v(q);
+        if !energy.is_finite() {
+            return Err(CliError::Usage(format!(
+                "--q, --p: the energy at this point is not finite ({energy})"
+            )));
+        }
+        return Ok((q.clone(), p.clone(), energy));
+    }
+    if dof != 2 {
+        return Err(CliError::Usage(format!(
+            "--q2/--p2 start on the section of a 2-degree-of-freedom system; with --dof {dof} \
+             give the whole point with --q and --p"
+        )));
+    }
+    let q2 = finite("--q2", a.q2.expect("clap requires --q2 without --q"))?;
+    let p2 = finite("--p2", a.p2.expect("clap requires --p2 with --q2"))?;
+    let energy = finite("--energy", a.energy.unwrap_or(DEFAULT_ENERGY))?;
+    let radicand = 2.0 * (energy - v(&[0.0, q2])) - p2 * p2;
+    if radicand.is_nan() || radicand <= 0.0 {
+        let e_min = v(&[0.0, q2]) + 0.5 * p2 * p2;
+        return Err(CliError::Usage(format!(
+            "--energy {energy}: (q2, p2) = ({q2}, {p2}) is not on the section q1 = 0, p1 > 0; \
+             allowed: --energy > {e_min} for this point"
+        )));
+    }
+    Ok((vec![0.0, q2], vec![radicand.sqrt(), p2], energy))
+}
+
 pub fn run(args: OrbitArgs) -> CliResult<()> {
     let job = validate(&args)?;
     let staged = args
@@ -236,28 +324,65 @@ pub fn run(args: OrbitArgs) -> CliResult<()> {
         .map(|dir| Staged::begin(dir, "--out"))
         .transpose()?;
     let start = Instant::now();
-    let run = MethodRun {
-        method: job.method.clone(),
-        delta: job.delta,
-        protocol: job.protocol,
-    };
     let vectors = if job.gali_all {
-        Vectors::Four
+        Vectors::All
     } else {
         Vectors::Two
     };
-    let result = run_henon_heiles(
-        &run,
+    let (run, energy) = (job.run(), job.energy);
+    let (config, requests) = (&job.config, &job.requests);
+    // The one place the command turns its system into a compiled run: Hénon–Heiles's own
+    // copy, or a polynomial system of one of the compiled sizes.
+    match &job.potential {
+        None => {
+            let result = run_henon_heiles(&run, energy, point(&job), config, requests, vectors);
+            finish(&args, &job, staged, &result, start)
+        }
+        Some((_, v)) => match v.dof() {
+            2 => finish(&args, &job, staged, &polynomial::<2>(&job, vectors), start),
+            3 => finish(&args, &job, staged, &polynomial::<3>(&job, vectors), start),
+            8 => finish(&args, &job, staged, &polynomial::<8>(&job, vectors), start),
+            n => unreachable!("--dof {n} is refused by validate"),
+        },
+    }
+}
+
+/// The job's initial point as arrays of its dimension.
+fn point<const N: usize>(job: &OrbitJob) -> ([f64; N], [f64; N]) {
+    let array = |x: &[f64]| x.try_into().expect("validate checks the point's length");
+    (array(&job.q), array(&job.p))
+}
+
+/// The job's orbit in its polynomial system of N degrees of freedom.
+fn polynomial<const N: usize>(job: &OrbitJob, vectors: Vectors) -> OrbitResult<N>
+where
+    PolynomialSystem<N>: PolynomialRun<N>,
+{
+    let (_, v) = job.potential.as_ref().expect("a polynomial job");
+    let system = PolynomialSystem::<N>::new(v.clone());
+    let (config, requests) = (&job.config, &job.requests);
+    system.run(
+        &job.run(),
         job.energy,
-        (job.q, job.p),
-        &job.config,
-        &job.requests,
+        point(job),
+        config,
+        requests,
         vectors,
-    );
+    )
+}
+
+/// Reports the orbit: the summary on stdout and, with --out, the files and plots.
+fn finish<const N: usize>(
+    args: &OrbitArgs,
+    job: &OrbitJob,
+    staged: Option<Staged>,
+    result: &OrbitResult<N>,
+    start: Instant,
+) -> CliResult<()> {
     let wall = start.elapsed().as_secs_f64();
-    let mut summary = summary_json(&job, &result, wall);
+    let mut summary = summary_json(job, result, wall);
     if let (Some(staged), Some(dir)) = (staged, &args.out) {
-        let mut warnings = write_outputs(staged.path(), &job, &result, &summary)?;
+        let mut warnings = write_outputs(staged.path(), job, result)?;
         if let Some(Value::Array(w)) = summary.get_mut("warnings") {
             w.extend(warnings.drain(..).map(Value::String));
         }
@@ -280,12 +405,22 @@ pub fn run(args: OrbitArgs) -> CliResult<()> {
     Ok(())
 }
 
-fn summary_json(job: &OrbitJob, r: &OrbitResult<2>, wall: f64) -> Value {
+fn summary_json<const N: usize>(job: &OrbitJob, r: &OrbitResult<N>, wall: f64) -> Value {
     let mut gali = Map::new();
     for (i, g) in r.gali.iter().enumerate() {
         gali.insert((i + 2).to_string(), json!(g));
     }
+    let mut initial = Map::new();
+    for (name, x) in [("q", &job.q), ("p", &job.p)] {
+        for (i, v) in x.iter().enumerate() {
+            initial.insert(format!("{name}{}", i + 1), json!(v));
+        }
+    }
     json!({
+        "system": if job.potential.is_some() { "polynomial" } else { HenonHeiles.name() },
+        "potential": job.potential.as_ref().map(|(text, _)| text),
+        "dof": N,
+        "energy": job.energy,
         "method": job.method.name(),
         "tau": job.config.tau,
         "delta": job.delta,
@@ -306,7 +441,7 @@ fn summary_json(job: &OrbitJob, r: &OrbitResult<2>, wall: f64) -> Value {
         "crossings": r.crossings.len(),
         "wall_s": wall,
         "ns_per_step": if r.steps > 0 { wall * 1e9 / r.steps as f64 } else { 0.0 },
-        "initial": { "q1": job.q[0], "q2": job.q[1], "p1": job.p[0], "p2": job.p[1] },
+        "initial": initial,
         "warnings": job.warnings,
     })
 }
@@ -379,11 +514,10 @@ fn write_file(path: &Path, text: &str) -> CliResult<()> {
 
 /// Writes series.csv, crossings.csv and the two plots; returns warnings for plots that had
 /// nothing to draw.
-fn write_outputs(
+fn write_outputs<const N: usize>(
     dir: &Path,
     job: &OrbitJob,
-    r: &OrbitResult<2>,
-    _summary: &Value,
+    r: &OrbitResult<N>,
 ) -> CliResult<Vec<String>> {
     let k_max = r.series.first().map_or(0, |s| s.gali.len()) + 1;
     let mut csv = String::from("t,sali");
@@ -407,9 +541,20 @@ fn write_outputs(
     }
     write_file(&dir.join("series.csv"), &csv)?;
 
-    let mut cross = String::from("t,q2,p2,p1\n");
+    // t, then q2…qN and p2…pN (the section's coordinates), then p1.
+    let mut cross = String::from("t");
+    for name in ["q", "p"] {
+        for i in 2..=N {
+            let _ = write!(cross, ",{name}{i}");
+        }
+    }
+    cross.push_str(",p1\n");
     for c in &r.crossings {
-        let _ = writeln!(cross, "{},{},{},{}", c.t, c.q[1], c.p[1], c.p[0]);
+        let _ = write!(cross, "{}", c.t);
+        for x in c.q[1..].iter().chain(&c.p[1..]) {
+            let _ = write!(cross, ",{x}");
+        }
+        let _ = writeln!(cross, ",{}", c.p[0]);
     }
     write_file(&dir.join("crossings.csv"), &cross)?;
 
@@ -419,9 +564,9 @@ fn write_outputs(
 /// indicators.png (SALI with its thresholds, GALI_k, the mLE, MEGNO's ⟨Y⟩ and the FLI: five
 /// panels), energy.png and
 /// section.png (the crossings of q1 = 0 upward) of one orbit; warnings for plots without data.
-fn plot_orbit(
+fn plot_orbit<const N: usize>(
     job: &OrbitJob,
-    r: &OrbitResult<2>,
+    r: &OrbitResult<N>,
     k_max: usize,
     dir: &Path,
 ) -> CliResult<Vec<String>> {
@@ -438,13 +583,18 @@ fn plot_orbit(
     let fli = column(&|s| s.growth.map_or(f64::NAN, |g| g.fli));
     let energy = column(&|s| s.energy_error);
     let labels: Vec<String> = (2..=k_max).map(|k| format!("GALI_{k}")).collect();
-    let title = format!(
-        "{} τ = {}  (q₂, p₂) = ({}, {})",
-        job.method.name(),
-        job.config.tau,
-        job.q[1],
-        job.p[1]
-    );
+    let start = if N == 2 && job.q[0] == 0.0 {
+        format!("(q₂, p₂) = ({}, {})", job.q[1], job.p[1])
+    } else {
+        let list = |x: &[f64]| {
+            x.iter()
+                .map(|v| v.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        format!("q = ({}), p = ({})", list(&job.q), list(&job.p))
+    };
+    let title = format!("{} τ = {}  {start}", job.method.name(), job.config.tau);
     let th = job.config.thresholds;
     let (regular_label, chaotic_label) = (
         format!("regular ≥ {:e}", th.regular),
@@ -542,9 +692,10 @@ fn plot_orbit(
     Ok(warnings)
 }
 
-/// section.png: where the orbit crosses q1 = 0 upward, in the (q₂, p₂) plane.
-fn plot_section(
-    r: &OrbitResult<2>,
+/// section.png: where the orbit crosses q1 = 0 upward, in the (q₂, p₂) plane (with more than
+/// two degrees of freedom, the section's projection on that plane).
+fn plot_section<const N: usize>(
+    r: &OrbitResult<N>,
     title: &str,
     dir: &Path,
     warnings: &mut Vec<String>,

@@ -13,6 +13,7 @@ use crate::lanes::{
 };
 use crate::method::Method;
 use crate::orbit::{initial_vectors, integrate, OrbitConfig, OrbitResult, Requests};
+use crate::polynomial::PolynomialSystem;
 use crate::tangent::{Phase, TangentMap};
 use crate::taylor::{Taylor, TaylorSeries};
 use crate::HenonHeiles;
@@ -68,8 +69,8 @@ pub fn run_orbit<H: TaylorSeries<N>, const N: usize, const K: usize>(
 pub enum Vectors {
     /// Two: SALI and GALI_2.
     Two,
-    /// Four: GALI_3 and GALI_4 as well.
-    Four,
+    /// 2N, one per phase-space dimension: GALI_3 … GALI_2N as well.
+    All,
 }
 
 /// [`run_orbit`] on Hénon–Heiles. The single-orbit commands (`salient orbit`, `salient
@@ -86,9 +87,57 @@ pub fn run_henon_heiles(
     let ham = &HenonHeiles;
     match vectors {
         Vectors::Two => run_orbit::<_, 2, 2>(ham, run, energy, q, p, config, requests),
-        Vectors::Four => run_orbit::<_, 2, 4>(ham, run, energy, q, p, config, requests),
+        Vectors::All => run_orbit::<_, 2, 4>(ham, run, energy, q, p, config, requests),
     }
 }
+
+/// The degrees of freedom polynomial systems are compiled for: the plane and space systems,
+/// and a chain of 8 for single orbits (each size adds about 20 s to the build of this crate).
+pub const POLYNOMIAL_DOFS: [usize; 3] = [2, 3, 8];
+
+/// [`run_orbit`] on a polynomial system, compiled here once for each of [`POLYNOMIAL_DOFS`]
+/// (see [`run_henon_heiles`]).
+pub trait PolynomialRun<const N: usize> {
+    /// Integrates the orbit from (q, p) with `vectors` deviation vectors.
+    fn run(
+        &self,
+        run: &MethodRun,
+        energy: f64,
+        start: ([f64; N], [f64; N]),
+        config: &OrbitConfig,
+        requests: &Requests,
+        vectors: Vectors,
+    ) -> OrbitResult<N>;
+}
+
+/// The implementation of [`PolynomialRun`] for N degrees of freedom, with all 2N vectors as
+/// `all` (a constant: the driver's vector count is a type parameter).
+macro_rules! polynomial_run {
+    ($($n:literal => $all:literal),*) => {$(
+        impl PolynomialRun<$n> for PolynomialSystem<$n> {
+            fn run(
+                &self,
+                run: &MethodRun,
+                energy: f64,
+                (q, p): ([f64; $n], [f64; $n]),
+                config: &OrbitConfig,
+                requests: &Requests,
+                vectors: Vectors,
+            ) -> OrbitResult<$n> {
+                match vectors {
+                    Vectors::Two => {
+                        run_orbit::<_, $n, 2>(self, run, energy, q, p, config, requests)
+                    }
+                    Vectors::All => {
+                        run_orbit::<_, $n, $all>(self, run, energy, q, p, config, requests)
+                    }
+                }
+            }
+        }
+    )*};
+}
+
+polynomial_run!(2 => 4, 3 => 6, 8 => 16);
 
 /// [`run_adaptive`] on Hénon–Heiles, compiled here once (see [`run_henon_heiles`]).
 #[allow(clippy::too_many_arguments)]
@@ -105,7 +154,7 @@ pub fn run_adaptive_henon_heiles(
     let watch = &mut watch;
     match vectors {
         Vectors::Two => run_adaptive::<_, 2, 2>(ham, run, energy, q, p, config, requests, watch),
-        Vectors::Four => run_adaptive::<_, 2, 4>(ham, run, energy, q, p, config, requests, watch),
+        Vectors::All => run_adaptive::<_, 2, 4>(ham, run, energy, q, p, config, requests, watch),
     }
 }
 

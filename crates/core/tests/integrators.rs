@@ -72,28 +72,27 @@ fn a_corrector_with_the_wrong_sign_is_caught_by_the_order_test() {
     }
 }
 
-/// The one-step tangent matrix M (columns = images of the 4 axes) at x.
-fn tangent_matrix<H: Hamiltonian<2>>(
+/// The one-step tangent matrix M (column k = the image of the k-th phase-space axis, rows
+/// q then p) at x, one deviation vector per axis.
+fn tangent_matrix<H: Hamiltonian<N>, const N: usize>(
     map: &TangentMap<'_, H>,
-    x: ([f64; 2], [f64; 2]),
+    x: ([f64; N], [f64; N]),
     h: f64,
-) -> [[f64; 4]; 4] {
-    let mut ph: Phase<f64, 2, 4> = Phase::zero();
-    ph.q = x.0;
-    ph.p = x.1;
-    for k in 0..4 {
-        if k < 2 {
-            ph.dq[k][k] = 1.0;
+) -> Vec<Vec<f64>> {
+    let mut m = vec![vec![0.0; 2 * N]; 2 * N];
+    for k in 0..2 * N {
+        let mut ph: Phase<f64, N, 1> = Phase::zero();
+        ph.q = x.0;
+        ph.p = x.1;
+        if k < N {
+            ph.dq[0][k] = 1.0;
         } else {
-            ph.dp[k][k - 2] = 1.0;
+            ph.dp[0][k - N] = 1.0;
         }
-    }
-    map.step(&mut ph, h);
-    let mut m = [[0.0; 4]; 4];
-    for k in 0..4 {
-        for i in 0..2 {
-            m[i][k] = ph.dq[k][i];
-            m[i + 2][k] = ph.dp[k][i];
+        map.step(&mut ph, h);
+        for i in 0..N {
+            m[i][k] = ph.dq[0][i];
+            m[i + N][k] = ph.dp[0][i];
         }
     }
     m
@@ -101,33 +100,29 @@ fn tangent_matrix<H: Hamiltonian<2>>(
 
 /// The tangent map of one step τ at x equals central differences of the orbit-only step, and
 /// is symplectic (MᵀJM = J); `label` names the case in failures.
-pub fn assert_jacobian_and_symplectic<H: Hamiltonian<2>>(
+pub fn assert_jacobian_and_symplectic<H: Hamiltonian<N>, const N: usize>(
     map: &TangentMap<'_, H>,
-    x: ([f64; 2], [f64; 2]),
+    x: ([f64; N], [f64; N]),
     tau: f64,
     label: &str,
 ) {
     let m = tangent_matrix(map, x, tau);
     let e = 1e-5;
-    for k in 0..4 {
+    let component = |y: &([f64; N], [f64; N]), i: usize| if i < N { y.0[i] } else { y.1[i - N] };
+    for k in 0..2 * N {
         let mut xp = x;
         let mut xm = x;
-        if k < 2 {
+        if k < N {
             xp.0[k] += e;
             xm.0[k] -= e;
         } else {
-            xp.1[k - 2] += e;
-            xm.1[k - 2] -= e;
+            xp.1[k - N] += e;
+            xm.1[k - N] -= e;
         }
         map.orbit_step(&mut xp.0, &mut xp.1, tau);
         map.orbit_step(&mut xm.0, &mut xm.1, tau);
-        for i in 0..4 {
-            let (a, b) = if i < 2 {
-                (xp.0[i], xm.0[i])
-            } else {
-                (xp.1[i - 2], xm.1[i - 2])
-            };
-            let fd = (a - b) / (2.0 * e);
+        for i in 0..2 * N {
+            let fd = (component(&xp, i) - component(&xm, i)) / (2.0 * e);
             let scale = m[i][k].abs().max(1.0);
             assert!(
                 (fd - m[i][k]).abs() <= 1e-7 * scale,
@@ -137,16 +132,20 @@ pub fn assert_jacobian_and_symplectic<H: Hamiltonian<2>>(
         }
     }
     // MᵀJM = J with J = [[0, I], [−I, 0]].
-    let j = |r: usize, c: usize| match (r, c) {
-        (0, 2) | (1, 3) => 1.0,
-        (2, 0) | (3, 1) => -1.0,
-        _ => 0.0,
+    let j = |r: usize, c: usize| {
+        if c == r + N {
+            1.0
+        } else if r == c + N {
+            -1.0
+        } else {
+            0.0
+        }
     };
-    for r in 0..4 {
-        for c in 0..4 {
+    for r in 0..2 * N {
+        for c in 0..2 * N {
             let mut s = 0.0;
-            for a in 0..4 {
-                for b in 0..4 {
+            for a in 0..2 * N {
+                for b in 0..2 * N {
                     s += m[a][r] * j(a, b) * m[b][c];
                 }
             }

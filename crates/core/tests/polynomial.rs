@@ -10,9 +10,10 @@ use salient_core::dop853::{Dop853, Dop853Config};
 use salient_core::orbit::{initial_vectors, integrate, Class, OrbitConfig, OrbitResult, Requests};
 use salient_core::polynomial::{Polynomial, PolynomialSystem};
 use salient_core::real::Real;
-use salient_core::run::{run_orbit, MethodRun};
+use salient_core::run::{run_orbit, MethodRun, PolynomialRun, Vectors};
 use salient_core::taylor::{Series, Taylor, TaylorSeries, P_MAX};
 use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method, Phase, Scheme, TangentMap};
+use std::f64::consts::PI;
 
 fn system(text: &str) -> PolynomialSystem<2> {
     PolynomialSystem::new(Polynomial::parse(text, 2).unwrap())
@@ -266,5 +267,133 @@ fn compiled_corrector_terms_and_bounds_hold_on_a_random_system() {
         assert!(frobenius(ham.hessian(&q)) <= bounds.hessian);
         assert!(norm(gk) <= bounds.corrector_grad);
         assert!(frobenius(hk) <= bounds.corrector_hessian);
+    }
+}
+
+/// GALI_k's laws (Skokos, Bountis & Antonopoulos, Physica D 231, 2007) on three coupled
+/// oscillators with frequencies 1, √2, √3 and cubic couplings q1²q2 and q1²q3: on a regular
+/// orbit (a 3-torus) GALI_2 and GALI_3 keep their size while GALI_4, GALI_5 and GALI_6 fall
+/// as t^−2, t^−4 and t^−6; on a chaotic orbit every GALI_k falls exponentially, so
+/// log GALI_k grows in magnitude in proportion to t.
+#[test]
+fn gali_follows_its_laws_on_a_three_dof_system() {
+    let ham: PolynomialSystem<3> = PolynomialSystem::new(
+        Polynomial::parse(
+            "q1^2/2 + q2^2 + 1.5*q3^2 + 1.189207115*q1^2*q2 + 1.316074013*q1^2*q3",
+            3,
+        )
+        .unwrap(),
+    );
+    let run = MethodRun {
+        method: Method::TangentMap(Scheme::by_name("sbab2c").unwrap()),
+        delta: None,
+        protocol: Protocol::Restart,
+    };
+    let requests = Requests {
+        gali: true,
+        ..Requests::default()
+    };
+    let gali = |start: ([f64; 3], [f64; 3]), t_final: f64| {
+        let mut config = OrbitConfig::new(0.05, t_final);
+        config.thresholds.early_stop = false;
+        let energy = ham.energy(&start.0, &start.1);
+        let r = ham.run(&run, energy, start, &config, &requests, Vectors::All);
+        assert_eq!(r.gali.len(), 5, "GALI_2 … GALI_6");
+        r.gali.iter().map(|g| g.log10()).collect::<Vec<f64>>()
+    };
+    let regular = ([0.1, 0.05, -0.05], [0.15, 0.1, 0.05]);
+    let (early, late) = (gali(regular, 5e3), gali(regular, 5e4));
+    for k in 0..2 {
+        assert!(
+            early[k] > -1.5 && (late[k] - early[k]).abs() < 0.5,
+            "regular GALI_{}: 10^{:.2} → 10^{:.2}",
+            k + 2,
+            early[k],
+            late[k]
+        );
+    }
+    for (k, power) in [(2, -2.0), (3, -4.0), (4, -6.0)] {
+        let slope = late[k] - early[k];
+        assert!(
+            (slope - power).abs() < 0.25 * power.abs(),
+            "regular GALI_{}: slope {slope:.2} per decade, law {power}",
+            k + 2
+        );
+    }
+    // Until the vectors align to rounding (GALI_2 near 1e-15, about t = 1000 here).
+    let chaotic = ([0.0; 3], [0.42, 0.05, 0.05]);
+    let (at1, at2) = (gali(chaotic, 250.0), gali(chaotic, 500.0));
+    for k in 0..5 {
+        assert!(
+            at2[k] < -8.0,
+            "chaotic GALI_{} only 10^{:.2}",
+            k + 2,
+            at2[k]
+        );
+        let ratio = at2[k] / at1[k];
+        assert!(
+            (1.5..2.5).contains(&ratio),
+            "chaotic GALI_{}: 10^{:.2} at t = 250, 10^{:.2} at 500",
+            k + 2,
+            at1[k],
+            at2[k]
+        );
+    }
+}
+
+/// The FPU-β chain of 8 particles with fixed ends (q0 = q9 = 0), β = 1, written out as text:
+/// V = Σ_{i=0}^{8} [(q_{i+1} − q_i)²/2 + β (q_{i+1} − q_i)⁴/4].
+fn fpu_beta_8() -> PolynomialSystem<8> {
+    let q = |i: usize| match i {
+        0 | 9 => "0".to_string(),
+        i => format!("q{i}"),
+    };
+    let text: Vec<String> = (0..=8)
+        .map(|i| {
+            let d = format!("({} - {})", q(i + 1), q(i));
+            format!("{d}^2/2 + {d}^4/4")
+        })
+        .collect();
+    PolynomialSystem::new(Polynomial::parse(&text.join(" + "), 8).unwrap())
+}
+
+/// The 8-particle FPU-β chain: the tangent map of every scheme is the Jacobian of its step and
+/// symplectic in 16 dimensions, and the energy is conserved along an orbit that starts in
+/// the lowest normal mode (the tangent map to its order, Taylor to its tolerance).
+#[test]
+fn an_eight_particle_fpu_beta_chain_runs_and_conserves_energy() {
+    let ham = fpu_beta_8();
+    // The lowest mode's shape, sin(iπ/9), with amplitude 0.5.
+    let q: [f64; 8] = core::array::from_fn(|i| 0.5 * ((i + 1) as f64 * PI / 9.0).sin());
+    let p: [f64; 8] = core::array::from_fn(|i| 0.1 * ((i + 1) as f64 * 2.0 * PI / 9.0).sin());
+    for name in ["sbab2c", "saba2c", "srkn14a"] {
+        let map = TangentMap::new(&ham, &Scheme::by_name(name).unwrap(), 0.05);
+        assert_jacobian_and_symplectic(&map, (q, p), 0.05, &format!("FPU-β {name}"));
+    }
+    let energy = ham.energy(&q, &p);
+    let requests = Requests {
+        energy: true,
+        ..Requests::default()
+    };
+    let mut config = OrbitConfig::new(0.05, 1e3);
+    config.thresholds.early_stop = false;
+    for (method, delta, bound) in [
+        (
+            Method::TangentMap(Scheme::by_name("sbab2c").unwrap()),
+            None,
+            1e-7,
+        ),
+        (Method::Taylor, Some(1e-13), 1e-12),
+        (Method::Dop853, Some(1e-13), 1e-12),
+    ] {
+        let run = MethodRun {
+            method: method.clone(),
+            delta,
+            protocol: Protocol::Restart,
+        };
+        let r = ham.run(&run, energy, (q, p), &config, &requests, Vectors::Two);
+        let error = r.energy_error_max.unwrap();
+        assert_eq!(r.t_reached, 1e3, "{method:?}: {:?}", r.status);
+        assert!(error < bound, "{method:?}: max |ΔH/H| {error:e}");
     }
 }
