@@ -11,6 +11,7 @@ mod cluster;
 mod dataset;
 mod grid_precision;
 mod human;
+mod ladder;
 mod maps;
 mod orbit;
 mod output;

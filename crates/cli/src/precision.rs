@@ -4,7 +4,7 @@
 use crate::output::{print_result, write_tables, Staged};
 use crate::usage::{finite, runtime, CliError, CliResult};
 use clap::Args;
-use salient_core::precision::{
+use crate::ladder::{
     default_ladder, reference, run_ladder, Row, ADAPTIVE_TAU, REFERENCE_DELTA,
 };
 use salient_core::section::on_section;

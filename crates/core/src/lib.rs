@@ -23,7 +23,6 @@ pub mod lanes;
 pub mod method;
 pub mod orbit;
 pub mod polynomial;
-pub mod precision;
 pub mod real;
 pub mod run;
 pub mod scheme;

@@ -2,11 +2,11 @@
 //! with a double-double Taylor reference from the same initial condition (the seed paper's
 //! Table 1 and Fig. 6, as data), on Hénon–Heiles.
 
-use crate::adaptive::Protocol;
-use crate::method::Method;
-use crate::orbit::{Class, OrbitConfig, OrbitResult, Requests, Status};
-use crate::run::{run_henon_heiles, MethodRun, Vectors};
-use crate::scheme::Scheme;
+use salient_core::adaptive::Protocol;
+use salient_core::method::Method;
+use salient_core::orbit::{Class, OrbitConfig, OrbitResult, Requests, Status};
+use salient_core::run::{run_henon_heiles, MethodRun, Vectors};
+use salient_core::scheme::Scheme;
 use std::time::Instant;
 
 /// The renormalisation interval of the adaptive methods' runs (the paper's τ).
