@@ -163,6 +163,13 @@ pub fn main() -> ExitCode {
     } else {
         registry.with(layer.with_filter(filter)).init();
     }
+    // Engine choices (speed only, never results) from the environment, handed to the
+    // libraries as configuration: SALIENT_SIMD=pinned runs the AVX2 copies only,
+    // SALIENT_FORECAST=0 turns forecasts off.
+    salient_core::engine::configure(salient_core::engine::EngineChoices {
+        pinned_simd: std::env::var("SALIENT_SIMD").as_deref() == Ok("pinned"),
+        forecasts: std::env::var("SALIENT_FORECAST").as_deref() != Ok("0"),
+    });
     let result = match cli.command {
         Command::Orbit(args) => orbit::run(args),
         Command::Run(args) => run::run(args),

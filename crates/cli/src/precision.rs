@@ -1,12 +1,10 @@
 //! `salient precision`: speed against error for every method on one orbit (`--grid`: for
 //! whole grids, in grid_precision.rs).
 
+use crate::ladder::{default_ladder, reference, run_ladder, Row, ADAPTIVE_TAU, REFERENCE_DELTA};
 use crate::output::{print_result, write_tables, Staged};
 use crate::usage::{finite, runtime, CliError, CliResult};
 use clap::Args;
-use crate::ladder::{
-    default_ladder, reference, run_ladder, Row, ADAPTIVE_TAU, REFERENCE_DELTA,
-};
 use salient_core::section::on_section;
 use salient_core::{Hamiltonian, HenonHeiles};
 use salient_report::{render_loglog, HLine, Line, LogLogPlot, Table};

@@ -458,18 +458,22 @@ pub enum Isa {
 }
 
 impl Isa {
-    /// The best the host offers; `SALIENT_SIMD=pinned` in the environment forces
-    /// [`Isa::Pinned`] (for comparisons).
+    /// The best the host offers, or [`Isa::Pinned`] where the engine choices say so
+    /// ([`crate::engine::EngineChoices::pinned_simd`], for comparisons).
     pub fn detect() -> Isa {
-        static ISA: std::sync::OnceLock<Isa> = std::sync::OnceLock::new();
-        *ISA.get_or_init(|| {
-            let forced = std::env::var("SALIENT_SIMD").is_ok_and(|v| v == "pinned");
-            if !forced && Isa::Avx512.available() {
+        static BEST: std::sync::OnceLock<Isa> = std::sync::OnceLock::new();
+        let best = *BEST.get_or_init(|| {
+            if Isa::Avx512.available() {
                 Isa::Avx512
             } else {
                 Isa::Pinned
             }
-        })
+        });
+        if crate::engine::choices().pinned_simd {
+            Isa::Pinned
+        } else {
+            best
+        }
     }
 
     /// Whether this host can run code compiled for `self`.

@@ -17,6 +17,7 @@ pub mod adaptive;
 pub mod batch;
 pub mod dd;
 pub mod dop853;
+pub mod engine;
 pub mod hamiltonian;
 pub mod indicators;
 pub mod lanes;

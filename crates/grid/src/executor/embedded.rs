@@ -532,7 +532,7 @@ fn finish(shared: Mutex<Shared<'_>>, claims: &Claims) -> Ledger {
 
 /// Whether [`run_embedded_forecast`] lets a forecast guide this run: streaming fast PSS whose
 /// threads keep several orbits in flight (lanes), the speculation a [`Forecast`] guides, unless
-/// `SALIENT_FORECAST=0`. An adaptive method one orbit at a time drops little, and there a
+/// the engine choices turn forecasts off ([`salient_core::engine::EngineChoices::forecasts`]). An adaptive method one orbit at a time drops little, and there a
 /// forecast only sends it further ahead and slows the run, while lanes gain from a good one
 /// (figures: docs/performance.md).
 pub fn takes_forecast(cell_run: &CellRun, mode: Mode) -> bool {
@@ -542,7 +542,7 @@ pub fn takes_forecast(cell_run: &CellRun, mode: Mode) -> bool {
     mode == Mode::FastPss
         && cell_run.checkpoints_per_decade == 0
         && several_in_flight
-        && std::env::var("SALIENT_FORECAST").map_or(true, |v| v != "0")
+        && salient_core::engine::choices().forecasts
 }
 
 #[cfg(test)]
