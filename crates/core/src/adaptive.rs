@@ -11,16 +11,16 @@
 //! by powers of two as in the tangent-map driver, because the error control weighs components
 //! by their size.
 
-use crate::dop853::{Dense, Dop853, StepFailure};
+use crate::dop853::{Dense, Dop853};
 use crate::hamiltonian::Hamiltonian;
 use crate::indicators::{gali, in_band, may_be_aligned, norm2, sali, GrowthHistory};
 use crate::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Sample, Status,
 };
-use crate::real::{dot, Lanes};
 use crate::section::{bracketed_root, Crossing};
+use crate::stepping::{to_f64_phase, unit_vectors, Lanewise, Scalar, StepEnd, StepFailure};
 use crate::tangent::Phase;
-use crate::taylor::{Lanewise, Scalar, Taylor, TaylorSeries};
+use crate::taylor::{Taylor, TaylorSeries};
 use core::future::Future;
 use core::pin::pin;
 use core::task::{Context, Poll, Waker};
@@ -108,51 +108,6 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     }
 }
 
-/// The sums the driver tests after every step, over a state rounded to f64: generic, so that
-/// a SIMD batch forms them for all its lanes at once with each lane's operations the scalar
-/// ones (reading each lane's state and summing it lane by lane is a large share of a run;
-/// figures: docs/performance.md).
-#[derive(Clone, Copy, Debug)]
-pub struct StepEnd<T, const K: usize> {
-    /// q₁, the section's coordinate.
-    pub q1: T,
-    /// q·q.
-    pub r2: T,
-    /// p·p.
-    pub p2: T,
-    /// |δq_k|² + |δp_k|² of every deviation vector.
-    pub n2: [T; K],
-    /// The inner product of the first two deviation vectors.
-    pub cross: T,
-}
-
-impl<T: crate::real::Real, const K: usize> StepEnd<T, K> {
-    #[inline(always)]
-    pub fn of<const N: usize>(y: &Phase<T, N, K>) -> Self {
-        StepEnd {
-            q1: y.q[0],
-            r2: dot(&y.q, &y.q),
-            p2: dot(&y.p, &y.p),
-            n2: core::array::from_fn(|k| dot(&y.dq[k], &y.dq[k]) + dot(&y.dp[k], &y.dp[k])),
-            cross: dot(&y.dq[0], &y.dq[1]) + dot(&y.dp[0], &y.dp[1]),
-        }
-    }
-}
-
-impl<const K: usize, const L: usize> StepEnd<Lanes<L>, K> {
-    /// Lane `l`'s sums.
-    #[inline(always)]
-    pub fn lane(&self, l: usize) -> StepEnd<f64, K> {
-        StepEnd {
-            q1: self.q1.0[l],
-            r2: self.r2.0[l],
-            p2: self.p2.0[l],
-            n2: self.n2.map(|x| x.0[l]),
-            cross: self.cross.0[l],
-        }
-    }
-}
-
 /// |h − h0| relative to |h0| (absolute when h0 is ~0).
 pub(crate) fn relative(dh: f64, h0: f64) -> f64 {
     dh.abs() / if h0.abs() > 1e-300 { h0.abs() } else { 1.0 }
@@ -225,87 +180,6 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
     }
 }
 
-/// Scales the deviation vectors of `y` to unit length (the factors rounded to f64, then applied
-/// in `T`'s precision); returns the length the first had, as f64.
-pub fn unit_vectors<T: Scalar, const N: usize, const K: usize>(y: &mut Phase<T, N, K>) -> f64 {
-    unit_deviations(&mut y.dq, &mut y.dp)
-}
-
-/// [`unit_vectors`] on the deviation vectors alone (δq, δp), so that a caller holding them
-/// elsewhere (a lane of a SIMD batch) need not assemble a whole phase point.
-#[inline(always)]
-pub fn unit_deviations<T: Scalar, const N: usize, const K: usize>(
-    dq: &mut [[T; N]; K],
-    dp: &mut [[T; N]; K],
-) -> f64 {
-    let mut length0 = 0.0;
-    for k in 0..K {
-        let n2: f64 = dq[k]
-            .iter()
-            .chain(&dp[k])
-            .map(|x| x.to_f64() * x.to_f64())
-            .sum();
-        let length = n2.sqrt();
-        let s = 1.0 / length;
-        if k == 0 {
-            length0 = length;
-        }
-        let st = T::splat(s);
-        for i in 0..N {
-            dq[k][i] = dq[k][i] * st;
-            dp[k][i] = dp[k][i] * st;
-        }
-    }
-    length0
-}
-
-/// [`unit_deviations`] in every lane of `mask` at once (lane by lane the same operations, so
-/// the same bits); the other lanes keep their vectors. Each lane's factor (1 where unmasked).
-#[inline(always)]
-pub fn unit_deviations_lanes<T, const N: usize, const K: usize, const L: usize>(
-    dq: &mut [[T; N]; K],
-    dp: &mut [[T; N]; K],
-    mask: &[bool; L],
-) -> [f64; L]
-where
-    T: Lanewise + crate::real::Real<Lead = Lanes<L>>,
-{
-    if !mask.contains(&true) {
-        return [1.0; L];
-    }
-    let every = mask.iter().all(|&m| m);
-    let rounded = |x: T| Lanes::<L>::from_fn(|l| x.lane(l).to_f64());
-    let mut length0 = Lanes([1.0; L]);
-    for k in 0..K {
-        // Summed as the scalar sums: left to right over δq then δp, from the first square.
-        let first = rounded(dq[k][0]);
-        let mut n2 = first * first;
-        for x in dq[k][1..].iter().chain(&dp[k]) {
-            let x = rounded(*x);
-            n2 += x * x;
-        }
-        let length = Lanes::<L>::from_fn(|l| n2.0[l].sqrt());
-        let s = Lanes::<L>::from_fn(|l| 1.0 / length.0[l]);
-        if k == 0 {
-            length0 = length;
-        }
-        let st = T::from_lead(s);
-        for v in [&mut dq[k], &mut dp[k]] {
-            for x in v.iter_mut() {
-                let scaled = *x * st;
-                if every {
-                    *x = scaled;
-                } else {
-                    for l in (0..L).filter(|&l| mask[l]) {
-                        x.set_lane(l, scaled.lane(l));
-                    }
-                }
-            }
-        }
-    }
-    core::array::from_fn(|l| if mask[l] { length0.0[l] } else { 1.0 })
-}
-
 /// The Taylor method as an adaptive integrator; the step's polynomial is the dense output.
 pub struct TaylorOrbit<'h, H, T: crate::real::Real, const N: usize, const K: usize> {
     pub inner: Taylor<'h, H, T, N, K>,
@@ -352,18 +226,6 @@ impl<H: TaylorSeries<N>, T: Scalar + Lanewise<Lane = T>, const N: usize, const K
             (self.ham.energy(&y.q, &y.p) - self.h0).to_f64(),
             self.h0.to_f64(),
         )
-    }
-}
-
-/// A phase point rounded to f64.
-pub fn to_f64_phase<T: Scalar, const N: usize, const K: usize>(
-    y: &Phase<T, N, K>,
-) -> Phase<f64, N, K> {
-    Phase {
-        q: y.q.map(Scalar::to_f64),
-        p: y.p.map(Scalar::to_f64),
-        dq: y.dq.map(|v| v.map(Scalar::to_f64)),
-        dp: y.dp.map(|v| v.map(Scalar::to_f64)),
     }
 }
 
@@ -1033,7 +895,9 @@ mod tests {
     use crate::dop853::Dop853Config;
     use crate::hamiltonian::HenonHeiles;
     use crate::orbit::initial_vectors;
+    use crate::real::Lanes;
     use crate::section::on_section;
+    use crate::stepping::{unit_deviations, unit_deviations_lanes};
     use crate::Deviation;
 
     /// The lanes' renormalisation is the scalar one in every masked lane, bit for bit (f64

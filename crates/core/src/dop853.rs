@@ -12,8 +12,8 @@
 
 use crate::hamiltonian::Hamiltonian;
 use crate::real::{Lanes, Real};
+use crate::stepping::{phase_lane, set_phase_lane, LaneSteps, StepFailure};
 use crate::tangent::Phase;
-use crate::taylor::{phase_lane, set_phase_lane};
 
 // Nodes c_i. The systems here are autonomous, so only the tableau test reads them.
 #[cfg_attr(not(test), allow(dead_code))]
@@ -317,10 +317,6 @@ fn attempt<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
     (y1, e5, e3)
 }
 
-/// What a batch's step gives its lanes: each asked lane's outcome (`None` for the others) and
-/// the factor of each lane's renormalisation before it.
-pub type LaneSteps<const L: usize> = ([Option<Result<(), StepFailure>>; L], [f64; L]);
-
 /// Tolerances and controller parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Dop853Config {
@@ -390,15 +386,6 @@ struct LastStep<const N: usize, const K: usize> {
     h: f64,
     y0: Phase<f64, N, K>,
     y1: Phase<f64, N, K>,
-}
-
-/// Why a step could not be taken.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum StepFailure {
-    /// The step size fell below what t's precision can resolve.
-    StepTooSmall { t: f64 },
-    /// NaN or infinity in the state or the error estimate.
-    NonFinite { t: f64 },
 }
 
 /// A DOP853 integration in progress: state, FSAL slope and the controller's memory.
@@ -728,7 +715,7 @@ pub struct Dop853Lanes<'h, H, const N: usize, const K: usize, const L: usize> {
     /// The energy of each lane's state.
     energy: [f64; L],
     /// The driver's sums over each lane's state after its last step.
-    sums: crate::adaptive::StepEnd<Lanes<L>, K>,
+    sums: crate::stepping::StepEnd<Lanes<L>, K>,
     pub evaluations: [u64; L],
 }
 
@@ -799,7 +786,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             last_y0: Phase::zero(),
             last_y1: Phase::zero(),
             energy: [0.0; L],
-            sums: crate::adaptive::StepEnd::of(&Phase::<_, N, K>::zero()),
+            sums: crate::stepping::StepEnd::of(&Phase::<_, N, K>::zero()),
             evaluations: [0; L],
         }
     }
@@ -845,11 +832,11 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
     }
 
     /// The driver's sums over lane `l`'s state after its last step.
-    pub fn step_end(&self, l: usize) -> crate::adaptive::StepEnd<f64, K> {
+    pub fn step_end(&self, l: usize) -> crate::stepping::StepEnd<f64, K> {
         self.sums.lane(l)
     }
 
-    /// Every lane of `mask` renormalised as [`crate::adaptive::unit_vectors`] would, and its
+    /// Every lane of `mask` renormalised as [`crate::stepping::unit_vectors`] would, and its
     /// slope recomputed as [`Dop853::state_changed`] does, all lanes at once; each such lane's
     /// factor.
     #[inline(always)]
@@ -857,7 +844,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         if !mask.contains(&true) {
             return [1.0; L];
         }
-        let factors = crate::adaptive::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask);
+        let factors = crate::stepping::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask);
         let f = rhs(self.ham, &self.y);
         blend(&mut self.f0, &f, mask);
         for l in (0..L).filter(|&l| mask[l]) {
@@ -927,7 +914,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             blend(&mut self.f0, &f1, &accepted);
             // For all lanes at once: the driver reads them after every step.
             let energy = self.ham.energy(&y1.q, &y1.p);
-            self.sums = crate::adaptive::StepEnd::of(&self.y);
+            self.sums = crate::stepping::StepEnd::of(&self.y);
             for l in (0..L).filter(|&l| accepted[l]) {
                 self.energy[l] = energy.0[l];
                 let (end, (h, _, last)) = plans[l].expect("accepted lanes had a plan");

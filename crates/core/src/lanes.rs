@@ -14,17 +14,17 @@
 
 use crate::adaptive::Abandoned;
 use crate::adaptive::{
-    integrate, quiet_restart_step, relative, to_f64_phase, AdaptiveIntegrator, Pace, Protocol,
-    QuietRules, StepEnd, Watch,
+    integrate, quiet_restart_step, relative, AdaptiveIntegrator, Pace, Protocol, QuietRules, Watch,
 };
 use crate::batch::{BatchFeed, Feed, Isa, IDLE_POLL};
-use crate::dop853::{Dense, Dop853Config, Dop853Lanes, LaneSteps, StepFailure};
+use crate::dop853::{Dense, Dop853Config, Dop853Lanes};
 use crate::hamiltonian::Hamiltonian;
 use crate::orbit::{OrbitConfig, OrbitResult, Requests};
 use crate::real::{Lanes, Real};
 use crate::section::Crossing;
+use crate::stepping::{to_f64_phase, LaneSteps, Lanewise, Scalar, StepEnd, StepFailure};
 use crate::tangent::Phase;
-use crate::taylor::{Lanewise, Scalar, TaylorLanes, TaylorSeries};
+use crate::taylor::{TaylorLanes, TaylorSeries};
 use core::cell::{Cell, RefCell};
 use core::future::Future;
 use core::pin::Pin;

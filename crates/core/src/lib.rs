@@ -28,6 +28,7 @@ pub mod real;
 pub mod run;
 pub mod scheme;
 pub mod section;
+pub mod stepping;
 pub mod tangent;
 pub mod taylor;
 

@@ -10,130 +10,13 @@
 //! double-double (`taylor-dd`), one orbit at a time ([`Taylor`]) or several in SIMD lanes
 //! ([`TaylorLanes`]).
 
-use crate::dd::DoubleDouble;
-use crate::dop853::{LaneSteps, StepFailure};
 use crate::hamiltonian::{Hamiltonian, HenonHeiles};
-use crate::real::{Lanes, Real};
+use crate::real::Real;
+use crate::stepping::{phase_lane, set_phase_lane, LaneSteps, Lanewise, Scalar, StepFailure};
 use crate::tangent::Phase;
 
 /// Highest order supported (δ = 1e-32 needs p = 38).
 pub const P_MAX: usize = 48;
-
-/// A number the Taylor integrator can run in: it must convert to f64 for step control.
-pub trait Scalar: Real {
-    fn to_f64(self) -> f64;
-}
-
-impl Scalar for f64 {
-    #[inline(always)]
-    fn to_f64(self) -> f64 {
-        self
-    }
-}
-
-impl Scalar for DoubleDouble {
-    #[inline(always)]
-    fn to_f64(self) -> f64 {
-        DoubleDouble::to_f64(self)
-    }
-}
-
-/// A number type holding [`Lanewise::LANES`] independent numbers of type [`Lanewise::Lane`]:
-/// one for `f64` and `DoubleDouble`, several for their SIMD forms. Step control is per lane;
-/// the recursion and the evaluation run on every lane at once.
-pub trait Lanewise: Real {
-    const LANES: usize;
-    type Lane: Scalar;
-    fn lane(self, i: usize) -> Self::Lane;
-    fn set_lane(&mut self, i: usize, x: Self::Lane);
-}
-
-impl Lanewise for f64 {
-    const LANES: usize = 1;
-    type Lane = f64;
-    #[inline(always)]
-    fn lane(self, _: usize) -> f64 {
-        self
-    }
-    #[inline(always)]
-    fn set_lane(&mut self, _: usize, x: f64) {
-        *self = x;
-    }
-}
-
-impl Lanewise for DoubleDouble {
-    const LANES: usize = 1;
-    type Lane = DoubleDouble;
-    #[inline(always)]
-    fn lane(self, _: usize) -> DoubleDouble {
-        self
-    }
-    #[inline(always)]
-    fn set_lane(&mut self, _: usize, x: DoubleDouble) {
-        *self = x;
-    }
-}
-
-impl<const L: usize> Lanewise for Lanes<L> {
-    const LANES: usize = L;
-    type Lane = f64;
-    #[inline(always)]
-    fn lane(self, i: usize) -> f64 {
-        self.0[i]
-    }
-    #[inline(always)]
-    fn set_lane(&mut self, i: usize, x: f64) {
-        self.0[i] = x;
-    }
-}
-
-impl<const L: usize> Lanewise for DoubleDouble<Lanes<L>> {
-    const LANES: usize = L;
-    type Lane = DoubleDouble;
-    #[inline(always)]
-    fn lane(self, i: usize) -> DoubleDouble {
-        DoubleDouble {
-            hi: self.hi.0[i],
-            lo: self.lo.0[i],
-        }
-    }
-    #[inline(always)]
-    fn set_lane(&mut self, i: usize, x: DoubleDouble) {
-        self.hi.0[i] = x.hi;
-        self.lo.0[i] = x.lo;
-    }
-}
-
-/// Lane `l` of a phase point.
-#[inline(always)]
-pub fn phase_lane<T: Lanewise, const N: usize, const K: usize>(
-    y: &Phase<T, N, K>,
-    l: usize,
-) -> Phase<T::Lane, N, K> {
-    Phase {
-        q: y.q.map(|x| x.lane(l)),
-        p: y.p.map(|x| x.lane(l)),
-        dq: y.dq.map(|v| v.map(|x| x.lane(l))),
-        dp: y.dp.map(|v| v.map(|x| x.lane(l))),
-    }
-}
-
-/// Sets lane `l` of a phase point.
-#[inline(always)]
-pub fn set_phase_lane<T: Lanewise, const N: usize, const K: usize>(
-    y: &mut Phase<T, N, K>,
-    l: usize,
-    x: &Phase<T::Lane, N, K>,
-) {
-    for i in 0..N {
-        y.q[i].set_lane(l, x.q[i]);
-        y.p[i].set_lane(l, x.p[i]);
-        for k in 0..K {
-            y.dq[k][i].set_lane(l, x.dq[k][i]);
-            y.dp[k][i].set_lane(l, x.dp[k][i]);
-        }
-    }
-}
 
 /// Taylor coefficients of one variable up to P_MAX.
 pub type Series<T> = [T; P_MAX + 1];
@@ -815,7 +698,7 @@ pub struct TaylorLanes<'h, H, T: Lanewise, const N: usize, const K: usize, const
     /// after every step instead of `energy` (which is then computed when asked).
     energy_f64: Option<[f64; L]>,
     /// The driver's sums over each lane's state after its last step, rounded to f64.
-    sums: crate::adaptive::StepEnd<crate::real::Lanes<L>, K>,
+    sums: crate::stepping::StepEnd<crate::real::Lanes<L>, K>,
     jet: Box<Jet<T, N, K>>,
 }
 
@@ -835,7 +718,7 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
             steps: [0; L],
             energy: [zero; L],
             energy_f64: None,
-            sums: crate::adaptive::StepEnd::of(&Phase::<_, N, K>::zero()),
+            sums: crate::stepping::StepEnd::of(&Phase::<_, N, K>::zero()),
             jet: Box::new(Jet::new(delta)),
         }
     }
@@ -886,11 +769,11 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
     }
 
     /// The driver's sums over lane `l`'s state after its last step.
-    pub fn step_end(&self, l: usize) -> crate::adaptive::StepEnd<f64, K> {
+    pub fn step_end(&self, l: usize) -> crate::stepping::StepEnd<f64, K> {
         self.sums.lane(l)
     }
 
-    /// The state of lane `l` rounded to f64 (as [`crate::adaptive::to_f64_phase`] of
+    /// The state of lane `l` rounded to f64 (as [`crate::stepping::to_f64_phase`] of
     /// [`Self::state`], read straight from the lanes).
     #[inline(always)]
     pub fn state_f64(&self, l: usize) -> Phase<f64, N, K> {
@@ -904,7 +787,7 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
     }
 
     /// Scales the deviation vectors of every lane of `mask` to unit length in place, all at
-    /// once, each lane by [`crate::adaptive::unit_vectors`]' operations; returns what it
+    /// once, each lane by [`crate::stepping::unit_vectors`]' operations; returns what it
     /// returns for each such lane. (Lane by lane, gathering and scattering, it is a large
     /// share of a run; figures: docs/performance.md.)
     #[inline(always)]
@@ -912,7 +795,7 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
     where
         T: Real<Lead = crate::real::Lanes<L>>,
     {
-        crate::adaptive::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask)
+        crate::stepping::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask)
     }
 
     /// [`Self::unit_vectors`] of the lanes of `renormalise`, then [`Self::step`].
@@ -1007,7 +890,7 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
         }
         let rounded = |x: T| crate::real::Lanes::<L>::from_fn(|l| x.lane(l).to_f64());
         let y64 = self.y.map(rounded);
-        self.sums = crate::adaptive::StepEnd::of(&y64);
+        self.sums = crate::stepping::StepEnd::of(&y64);
         if let Some(e) = &mut self.energy_f64 {
             *e = self.ham.energy(&y64.q, &y64.p).0;
         }
@@ -1036,6 +919,7 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::dd::DoubleDouble;
 
     #[test]
     fn jorba_zou_orders_match_the_papers_table_1() {

@@ -620,8 +620,8 @@ fn adaptive_lanes_equal_scalar_orbits_bit_for_bit() {
 /// renormalisation, rejected attempts (a bold controller) and the dense output of a step.
 #[test]
 fn dop853_lanes_equal_the_one_orbit_integrator_step_by_step() {
-    use salient_core::adaptive::unit_vectors;
     use salient_core::dop853::{Dense, Dop853, Dop853Config, Dop853Lanes};
+    use salient_core::stepping::unit_vectors;
     use salient_core::tangent::Phase;
     const L: usize = 4;
     let ham = HenonHeiles;
