@@ -43,6 +43,22 @@ pub fn choices() -> EngineChoices {
     }
 }
 
+/// CPU time of the calling thread, in nanoseconds (0 where the clock cannot be read): what
+/// a calibration of the engines' speed measures. Here because it takes the workspace's one
+/// `unsafe` system call outside the drivers.
+pub fn thread_cpu_ns() -> u64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec through a valid pointer.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    if rc != 0 {
+        return 0;
+    }
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

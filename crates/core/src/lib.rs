@@ -12,6 +12,10 @@
 
 // Index loops over phase-space components mirror the formulas they implement.
 #![allow(clippy::needless_range_loop)]
+// The one crate with `unsafe` (the workspace denies it elsewhere): the SIMD drivers call the
+// copies compiled for AVX-512 once the host is known to have it (`batch::Isa`), the lane
+// types' loads and stores (`real`), and the thread CPU clock (`engine::thread_cpu_ns`).
+#![allow(unsafe_code)]
 
 pub mod adaptive;
 pub mod batch;

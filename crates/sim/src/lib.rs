@@ -15,14 +15,15 @@ mod world;
 
 use prost::Message;
 use salient_coordinator::scheduler::{Config, FrontierCell, Progress, Scheduler};
+pub use salient_core::engine::thread_cpu_ns;
 use salient_grid::spec::{self, JobSpec};
 use salient_grid::{executor, Forecast, Grid, Ledger, Mode};
 use salient_proto::{v1, PROTOCOL_VERSION};
 use salient_store::Store;
 use serde::Serialize;
 use std::collections::{HashMap, VecDeque};
+pub use traces::calibrate_step_ns;
 use traces::Traces;
-pub use traces::{calibrate_step_ns, thread_cpu_ns};
 use tracing::subscriber::NoSubscriber;
 use worker::{LeasedCell, Shape, SimWorker, FIRST_POLL_NS};
 use world::{Event, World};

@@ -2,6 +2,7 @@
 //! for real once (its outcome, and when it first crossed each cell) and replayed in virtual
 //! time from then on, by every simulated worker and every worker count.
 
+use salient_core::engine::thread_cpu_ns;
 use salient_grid::executor::{
     integrate_stream, trace_cells, CellSource, LocalLedger, OrbitTrace, Take, Verdict,
 };
@@ -57,20 +58,6 @@ impl Traces {
         }
         self.orbits[cell as usize].clone().expect("traced")
     }
-}
-
-/// CPU time of the calling thread, in nanoseconds.
-pub fn thread_cpu_ns() -> u64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime writes one timespec through a valid pointer.
-    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    if rc != 0 {
-        return 0;
-    }
-    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
 
 /// Orbit-steps integrated to calibrate the cost of a step: enough for a stable figure, a few
