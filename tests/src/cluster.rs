@@ -6,6 +6,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// The bearer token every process of a test cluster is given.
 pub const TOKEN: &str = "s3cret-token";
 
 /// A child process killed when the test ends, whatever happens.
@@ -18,6 +19,7 @@ impl Drop for Proc {
     }
 }
 
+/// Starts `salient` with `args`, its stderr written to `log`.
 pub fn spawn(args: &[&str], log: &Path) -> Proc {
     let log = std::fs::File::create(log).unwrap();
     Proc(
@@ -32,6 +34,7 @@ pub fn spawn(args: &[&str], log: &Path) -> Proc {
     )
 }
 
+/// Waits until `ok` holds, polling every 50 ms; panics after `timeout`, naming `what`.
 pub fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
     let start = Instant::now();
     while !ok() {
@@ -45,6 +48,7 @@ pub fn coordinator(dir: &Path, listen: &str, log: &str) -> (Proc, String) {
     coordinator_with(dir, listen, log, &["--lease-seconds", "5"])
 }
 
+/// Starts a coordinator on `listen` with arguments `extra` and returns it with its URL.
 pub fn coordinator_with(dir: &Path, listen: &str, log: &str, extra: &[&str]) -> (Proc, String) {
     let addr_file = dir.join(format!("{log}.addr"));
     let _ = std::fs::remove_file(&addr_file);
@@ -69,6 +73,7 @@ pub fn coordinator_with(dir: &Path, listen: &str, log: &str, extra: &[&str]) -> 
     (p, format!("http://{}", addr.trim()))
 }
 
+/// Starts worker `n` (one thread, named `w<n>`) against the coordinator at `url`.
 pub fn worker(dir: &Path, url: &str, n: usize) -> Proc {
     spawn(
         &[
@@ -84,6 +89,7 @@ pub fn worker(dir: &Path, url: &str, n: usize) -> Proc {
     )
 }
 
+/// Runs a client command against the coordinator at `url` and returns its output.
 pub fn client(args: &[&str], url: &str) -> std::process::Output {
     Command::new(salient_path())
         .args(args)

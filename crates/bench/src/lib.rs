@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 const SAMPLES: usize = 20;
 const SAMPLE_TIME: Duration = Duration::from_millis(150);
 
+/// Runs benchmark cases as cargo's arguments ask: measured, or each once as a smoke test.
 pub struct Harness {
     measure: bool,
     filter: Option<String>,

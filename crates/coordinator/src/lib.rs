@@ -28,27 +28,41 @@ type Reply<T> = oneshot::Sender<Result<T, Status>>;
 
 /// Everything that changes or reads the scheduler's state.
 pub enum Event {
+    /// Submit a job spec; the reply is the job id and the spec's warnings.
     Submit(String, Reply<(u64, Vec<String>)>),
+    /// A worker registers.
     Register(v1::RegisterRequest, Reply<v1::RegisterReply>),
+    /// A worker's poll: reports, renewals, crossings and free slots for leases.
     Poll(v1::PollRequest, Reply<v1::PollReply>),
+    /// A worker renews the leases it holds.
     Renew(v1::RenewRequest, Reply<v1::RenewReply>),
+    /// A worker reports outcomes.
     Report(v1::ReportRequest, Reply<v1::ReportReply>),
+    /// A worker leaves, releasing its leases.
     Deregister(v1::DeregisterRequest, Reply<()>),
+    /// Status of one job, or of every job.
     Status(Option<u64>, Reply<v1::StatusReply>),
+    /// Stream a job's status to the sender until the job ends.
     Watch(u64, mpsc::Sender<Result<v1::JobStatus, Status>>),
+    /// The results stream of a job.
     Results(u64, Reply<Vec<v1::ResultsChunk>>),
+    /// Cancel a job; the reply is its state.
     Cancel(u64, Reply<String>),
+    /// The periodic tick: silent workers, expired leases, progress logs and watchers.
     Tick,
 }
 
 /// How the coordinator is run.
 pub struct Options {
+    /// Address to listen on.
     pub listen: SocketAddr,
+    /// Path of the SQLite store.
     pub db: PathBuf,
     /// Bearer token required from workers and clients.
     pub token: Option<String>,
     /// PEM certificate chain and key for TLS.
     pub tls: Option<(Vec<u8>, Vec<u8>)>,
+    /// Timing of leases and polls.
     pub config: Config,
     /// Interval of the per-run progress log lines.
     pub progress_every: Duration,

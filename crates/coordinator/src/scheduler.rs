@@ -536,7 +536,12 @@ pub enum FrontierCell<'a> {
     /// No lease holds it yet.
     Unleased(u32),
     /// A lease of this worker holds it (queued there, or running).
-    Leased { cell: u32, worker: &'a str },
+    Leased {
+        /// The cell.
+        cell: u32,
+        /// Id of the worker whose lease holds it.
+        worker: &'a str,
+    },
     /// Its tile is leased without it (it was claimed, or skipped, when the lease was made):
     /// it waits for that lease to end.
     Stranded(u32),
@@ -726,6 +731,7 @@ impl Scheduler {
         Ok((id, warnings))
     }
 
+    /// Registers a worker speaking [`PROTOCOL_VERSION`] and gives it an id.
     pub fn register(&mut self, req: &v1::RegisterRequest) -> Result<v1::RegisterReply, Status> {
         if req.protocol_version != PROTOCOL_VERSION {
             return Err(Status::failed_precondition(format!(
@@ -1304,6 +1310,8 @@ impl Scheduler {
         Some((threads * per_thread).max(1))
     }
 
+    /// Answers a poll: applies its reports, renews its leases, notes its orbits' crossings
+    /// and, unless the worker drains, grants leases for its free slots.
     pub fn poll(&mut self, req: &v1::PollRequest) -> Result<v1::PollReply, Status> {
         self.known_worker(&req.worker_id)?;
         let worker = req.worker_id.as_str();
@@ -1393,6 +1401,7 @@ impl Scheduler {
         (acknowledged, stale)
     }
 
+    /// Applies a worker's reports; the reply says which leases were acknowledged and which stale.
     pub fn report(&mut self, req: &v1::ReportRequest) -> Result<v1::ReportReply, Status> {
         self.known_worker(&req.worker_id)?;
         let mut replies = Replies::default();
@@ -1404,6 +1413,7 @@ impl Scheduler {
         })
     }
 
+    /// Renews the leases a worker names; the reply lists those it must stop.
     pub fn renew_only(&mut self, req: &v1::RenewRequest) -> Result<v1::RenewReply, Status> {
         self.known_worker(&req.worker_id)?;
         Ok(v1::RenewReply {
@@ -1506,6 +1516,7 @@ impl Scheduler {
         }
     }
 
+    /// Cancels a job and takes back its leases; returns the job's state.
     pub fn cancel(&mut self, id: u64) -> Result<String, Status> {
         let Some(job) = self.jobs.get_mut(&id) else {
             let row = self
@@ -1596,6 +1607,7 @@ impl Scheduler {
         })
     }
 
+    /// Number of workers registered.
     pub fn workers(&self) -> u32 {
         self.workers.len() as u32
     }

@@ -37,6 +37,7 @@ pub enum Protocol {
 }
 
 impl Protocol {
+    /// The protocol's kebab-case name, as serialised.
     pub fn as_str(self) -> &'static str {
         match self {
             Protocol::Restart => "restart",
@@ -47,6 +48,7 @@ impl Protocol {
 
 /// An adaptive integrator of the orbit and its deviation vectors.
 pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
+    /// The time reached.
     fn t(&self) -> f64;
     /// The current state, rounded to f64.
     fn state(&self) -> Phase<f64, N, K>;
@@ -115,6 +117,7 @@ pub(crate) fn relative(dh: f64, h0: f64) -> f64 {
 
 /// DOP853 with the dense output of its last step.
 pub struct Dop853Orbit<'h, H, const N: usize, const K: usize> {
+    /// The underlying DOP853 integrator.
     pub inner: Dop853<'h, H, N, K>,
     dense: Dense<N, K>,
     /// Whether `dense` belongs to the last step.
@@ -125,6 +128,7 @@ pub struct Dop853Orbit<'h, H, const N: usize, const K: usize> {
 }
 
 impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853Orbit<'h, H, N, K> {
+    /// Wraps `inner`, taking the energy reference from its current state.
     pub fn new(ham: &'h H, inner: Dop853<'h, H, N, K>) -> Self {
         let t = inner.t;
         let h0 = ham.energy(&inner.y.q, &inner.y.p);
@@ -182,6 +186,7 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
 
 /// The Taylor method as an adaptive integrator; the step's polynomial is the dense output.
 pub struct TaylorOrbit<'h, H, T: crate::real::Real, const N: usize, const K: usize> {
+    /// The underlying Taylor integrator.
     pub inner: Taylor<'h, H, T, N, K>,
     ham: &'h H,
     h0: T,
@@ -190,6 +195,7 @@ pub struct TaylorOrbit<'h, H, T: crate::real::Real, const N: usize, const K: usi
 impl<'h, H: TaylorSeries<N>, T: Scalar + Lanewise<Lane = T>, const N: usize, const K: usize>
     TaylorOrbit<'h, H, T, N, K>
 {
+    /// Wraps `inner`, taking the energy reference from its current state.
     pub fn new(ham: &'h H, inner: Taylor<'h, H, T, N, K>) -> Self {
         let h0 = ham.energy(&inner.y.q, &inner.y.p);
         TaylorOrbit { inner, ham, h0 }
@@ -593,6 +599,7 @@ impl<const N: usize> Watch<N> for Unwatched {}
 /// An orbit given up at a caller's request ([`Watch::cancelled`]) after this many steps.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Abandoned {
+    /// Steps taken before the orbit was given up.
     pub steps: u64,
 }
 

@@ -13,7 +13,9 @@ use core::ops::{Add, AddAssign, Div, Mul, Neg, Sub, SubAssign};
 /// exactly what the `f64` form computes (same operations, same order).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct DoubleDouble<B = f64> {
+    /// The leading part.
     pub hi: B,
+    /// The trailing part, below half an ulp of `hi`.
     pub lo: B,
 }
 
@@ -60,8 +62,10 @@ impl<B: Real> DoubleDouble<B> {
 }
 
 impl DoubleDouble {
+    /// Zero.
     pub const ZERO: DoubleDouble = DoubleDouble { hi: 0.0, lo: 0.0 };
 
+    /// The exact value of `x`.
     #[inline(always)]
     pub fn from_f64(x: f64) -> Self {
         DoubleDouble { hi: x, lo: 0.0 }
@@ -73,6 +77,7 @@ impl DoubleDouble {
         self.hi + self.lo
     }
 
+    /// The absolute value.
     pub fn abs(self) -> Self {
         if self.hi < 0.0 {
             -self
@@ -81,6 +86,7 @@ impl DoubleDouble {
         }
     }
 
+    /// The square root (one Newton step from the f64 root); the f64 root of `hi` when `hi` ≤ 0.
     pub fn sqrt(self) -> Self {
         if self.hi <= 0.0 {
             return DoubleDouble::from_f64(self.hi.sqrt());

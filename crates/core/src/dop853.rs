@@ -320,12 +320,15 @@ fn attempt<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
 /// Tolerances and controller parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Dop853Config {
+    /// Relative tolerance.
     pub rtol: f64,
+    /// Absolute tolerance.
     pub atol: f64,
     /// Safety factor of the step prediction (0.9).
     pub safe: f64,
     /// Bounds of h_new/h (0.333 and 6).
     pub fac_min: f64,
+    /// Upper bound of h_new/h (6).
     pub fac_max: f64,
     /// Largest step allowed.
     pub h_max: f64,
@@ -349,7 +352,9 @@ impl Dop853Config {
 /// c0 + θ(c1 + θ'(c2 + θ(c3 + θ'(c4 + θ(c5 + θ'(c6 + θ c7)))))), θ' = 1 − θ.
 #[derive(Clone, Copy, Debug)]
 pub struct Dense<const N: usize, const K: usize> {
+    /// Start of the step.
     pub t_old: f64,
+    /// Size of the step.
     pub h: f64,
     c: [Phase<f64, N, K>; 8],
 }
@@ -392,8 +397,11 @@ struct LastStep<const N: usize, const K: usize> {
 #[derive(Clone, Debug)]
 pub struct Dop853<'h, H, const N: usize, const K: usize> {
     ham: &'h H,
+    /// Tolerances and controller parameters.
     pub config: Dop853Config,
+    /// Current time.
     pub t: f64,
+    /// Current state.
     pub y: Phase<f64, N, K>,
     /// f(t, y), reused as the first stage of the next step (FSAL).
     f0: Phase<f64, N, K>,
@@ -403,6 +411,7 @@ pub struct Dop853<'h, H, const N: usize, const K: usize> {
     last: LastStep<N, K>,
     /// The step-size controller.
     pub ctl: Control,
+    /// Right-hand-side evaluations so far.
     pub evaluations: u64,
 }
 
@@ -413,7 +422,9 @@ pub struct Control {
     pub h: f64,
     fac_old: f64,
     rejected_last: bool,
+    /// Accepted steps so far.
     pub accepted: u64,
+    /// Rejected attempts so far.
     pub rejected: u64,
 }
 
@@ -716,6 +727,7 @@ pub struct Dop853Lanes<'h, H, const N: usize, const K: usize, const L: usize> {
     energy: [f64; L],
     /// The driver's sums over each lane's state after its last step.
     sums: crate::stepping::StepEnd<Lanes<L>, K>,
+    /// Right-hand-side evaluations of each lane so far.
     pub evaluations: [u64; L],
 }
 
@@ -770,6 +782,7 @@ fn error_norms<const N: usize, const K: usize, const L: usize>(
 impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
     Dop853Lanes<'h, H, N, K, L>
 {
+    /// `L` idle lanes; [`Self::start`] starts each.
     pub fn new(ham: &'h H, config: Dop853Config) -> Self {
         Dop853Lanes {
             ham,
@@ -808,6 +821,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         self.ham
     }
 
+    /// Lane `l`'s current time.
     pub fn t(&self, l: usize) -> f64 {
         self.t[l]
     }
@@ -822,6 +836,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
         self.ctl[l].accepted
     }
 
+    /// Lane `l`'s current state.
     pub fn state(&self, l: usize) -> Phase<f64, N, K> {
         phase_lane(&self.y, l)
     }

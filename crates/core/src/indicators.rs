@@ -171,6 +171,7 @@ pub struct GrowthHistory {
 }
 
 impl GrowthHistory {
+    /// A history with no node yet.
     pub const NEW: GrowthHistory = GrowthHistory {
         t: 0.0,
         ln_norm: 0.0,

@@ -33,7 +33,9 @@ use core::task::{Context, Poll, Waker};
 /// A feed's hooks seen from one orbit: its crossings go to the feed as they are located, and
 /// the feed may abandon it. The feed is shared by every lane of a thread, hence the cell.
 pub struct FeedWatch<'a, 'f, F> {
+    /// The feed, shared by the thread's lanes.
     pub feed: &'a RefCell<&'f mut F>,
+    /// The orbit's id in the feed.
     pub id: usize,
 }
 
@@ -124,8 +126,11 @@ pub trait LaneBatch<const N: usize, const K: usize, const L: usize> {
         renormalise: &[bool; L],
         t_end: &[Option<f64>; L],
     ) -> LaneSteps<L>;
+    /// Lane `l`'s current time.
     fn t(&self, l: usize) -> f64;
+    /// Where lane `l`'s last step started.
     fn t_prev(&self, l: usize) -> f64;
+    /// Lane `l`'s accepted steps.
     fn steps(&self, l: usize) -> u64;
     /// Lane `l`'s state rounded to f64.
     fn state_f64(&self, l: usize) -> Phase<f64, N, K>;
@@ -216,6 +221,7 @@ pub struct Dop853Batch<'h, H, const N: usize, const K: usize, const L: usize> {
 impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
     Dop853Batch<'h, H, N, K, L>
 {
+    /// `L` idle lanes with the given tolerances.
     pub fn new(ham: &'h H, config: Dop853Config) -> Self {
         Dop853Batch {
             lanes: Dop853Lanes::new(ham, config),
@@ -412,10 +418,15 @@ where
 
 /// What every lane integrates with.
 pub struct LaneSetup<'a, H> {
+    /// The Hamiltonian.
     pub ham: &'a H,
+    /// Tolerance δ of the adaptive method.
     pub delta: f64,
+    /// How the lanes meet the renormalisation times.
     pub protocol: Protocol,
+    /// What to integrate.
     pub config: &'a OrbitConfig,
+    /// What to compute besides the final SALI and mLE.
     pub requests: &'a Requests,
 }
 
@@ -481,6 +492,7 @@ pub fn integrate_feed_dop853_on<
 
 /// The type holding `L` numbers of `Self` in SIMD lanes.
 pub trait SimdOf<const L: usize> {
+    /// `L` lanes of `Self`.
     type Simd: Lanewise<Lane = Self> + Real<Lead = Lanes<L>>;
 }
 

@@ -50,6 +50,7 @@ impl Method {
         v
     }
 
+    /// The method's name as the CLI accepts it (`tm-<scheme>`, `dop853`, `taylor`, `taylor-dd`).
     pub fn name(&self) -> String {
         match self {
             Method::TangentMap(s) => format!("tm-{}", s.name),

@@ -41,6 +41,7 @@ impl Status {
         Status::EnergyDrift,
     ];
 
+    /// The status's kebab-case name, as serialised.
     pub fn as_str(self) -> &'static str {
         match self {
             Status::Ok => "ok",
@@ -57,8 +58,11 @@ impl Status {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Class {
+    /// SALI at or above the regular threshold.
     Regular,
+    /// SALI between the chaotic and the regular thresholds.
     Sticky,
+    /// SALI below the chaotic threshold.
     Chaotic,
 }
 
@@ -66,6 +70,7 @@ impl Class {
     /// Every class, from regular to chaotic.
     pub const ALL: [Class; 3] = [Class::Regular, Class::Sticky, Class::Chaotic];
 
+    /// The class's kebab-case name, as serialised.
     pub fn as_str(self) -> &'static str {
         match self {
             Class::Regular => "regular",
@@ -78,7 +83,9 @@ impl Class {
 /// SALI thresholds (the seed paper's: regular ≥ 1e-4, chaotic < 1e-8) and the early stop.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Thresholds {
+    /// SALI at or above this is regular.
     pub regular: f64,
+    /// SALI below this is chaotic; between the two, sticky.
     pub chaotic: f64,
     /// Stop as soon as SALI < `chaotic` (the paper's convention).
     pub early_stop: bool,
@@ -112,6 +119,7 @@ impl Default for Thresholds {
 }
 
 impl Thresholds {
+    /// The class of an orbit whose final SALI is `sali`.
     pub fn classify(&self, sali: f64) -> Class {
         if sali >= self.regular {
             Class::Regular
@@ -130,21 +138,29 @@ pub enum Deviation {
     /// The k-th vector is the k-th axis of (δq1..δqN, δp1..δpN).
     Axes,
     /// Unit vectors with components drawn uniformly from [−1, 1) by ChaCha8 from `seed`.
-    Random { seed: u64 },
+    Random {
+        /// Seed of the ChaCha8 generator.
+        seed: u64,
+    },
 }
 
 /// What to integrate.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OrbitConfig {
+    /// Renormalisation (and SALI sampling) interval τ.
     pub tau: f64,
+    /// Time to integrate to.
     pub t_final: f64,
+    /// Classification thresholds and the early stop.
     pub thresholds: Thresholds,
+    /// How the initial deviation vectors are chosen.
     pub deviation: Deviation,
     /// Overrides the Hamiltonian's escape radius.
     pub escape_radius: Option<f64>,
 }
 
 impl OrbitConfig {
+    /// A configuration with default thresholds, axis deviation vectors and the Hamiltonian's escape radius.
     pub fn new(tau: f64, t_final: f64) -> Self {
         OrbitConfig {
             tau,
@@ -183,11 +199,15 @@ impl Requests {
 /// Indicators at one time.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Sample {
+    /// Time of the sample.
     pub t: f64,
+    /// SALI of the first two deviation vectors.
     pub sali: f64,
     /// GALI_2..GALI_K (empty unless requested).
     pub gali: Vec<f64>,
+    /// Finite-time maximal Lyapunov exponent (1/t) ln‖w1(t)‖.
     pub mle: f64,
+    /// |ΔH/H| at `t`.
     pub energy_error: f64,
     /// MEGNO and the FLI (when requested; with the free protocol, at the end of the step that
     /// holds `t`).
@@ -197,6 +217,7 @@ pub struct Sample {
 /// What an orbit integration produced.
 #[derive(Clone, Debug, PartialEq)]
 pub struct OrbitResult<const N: usize> {
+    /// How the orbit ended.
     pub status: Status,
     /// None for escaped and non-finite orbits.
     pub class: Option<Class>,
@@ -204,6 +225,7 @@ pub struct OrbitResult<const N: usize> {
     pub t_reached: f64,
     /// Integration steps taken.
     pub steps: u64,
+    /// SALI at t_reached (NaN for orbits without a class).
     pub sali: f64,
     /// GALI_2..GALI_K at t_reached (empty unless requested).
     pub gali: Vec<f64>,
@@ -213,14 +235,18 @@ pub struct OrbitResult<const N: usize> {
     pub growth: Option<GrowthIndicators>,
     /// max |ΔH/H| over the steps (when requested).
     pub energy_error_max: Option<f64>,
+    /// Upward crossings of q1 = 0 (when requested).
     pub crossings: Vec<Crossing<N>>,
+    /// Indicators at log-spaced times (when requested).
     pub series: Vec<Sample>,
     /// The orbit's phase-space point at `t_reached`.
     pub q_end: [f64; N],
+    /// The orbit's momenta at `t_reached`.
     pub p_end: [f64; N],
 }
 
 impl<const N: usize> OrbitResult<N> {
+    /// A result with nothing computed: NaN indicators and end point, no steps.
     pub fn empty() -> Self {
         OrbitResult {
             q_end: [f64::NAN; N],

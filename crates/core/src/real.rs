@@ -71,6 +71,7 @@ impl Real for f64 {
 pub struct Lanes<const L: usize>(pub [f64; L]);
 
 impl<const L: usize> Lanes<L> {
+    /// Lane `l` holds `f(l)`.
     #[inline(always)]
     pub fn from_fn(f: impl FnMut(usize) -> f64) -> Self {
         Lanes(core::array::from_fn(f))
@@ -214,28 +215,33 @@ pub fn lane_bits<const L: usize>(f: impl Fn(usize) -> bool) -> u64 {
 /// Lane-wise comparisons as bit masks (lane `l` is bit `l`): one vector compare and a mask
 /// extraction where [`avx4`] applies. The `not_*` forms are true where either side is NaN.
 impl<const L: usize> Lanes<L> {
+    /// Lanes where `self < rhs`.
     #[inline(always)]
     pub fn lt_bits(self, rhs: Self) -> u64 {
         avx4::cmp_bits::<L, { avx4::LT }>(self, rhs)
             .unwrap_or_else(|| lane_bits::<L>(|l| self.0[l] < rhs.0[l]))
     }
+    /// Lanes where `self >= rhs`.
     #[inline(always)]
     pub fn ge_bits(self, rhs: Self) -> u64 {
         avx4::cmp_bits::<L, { avx4::GE }>(self, rhs)
             .unwrap_or_else(|| lane_bits::<L>(|l| self.0[l] >= rhs.0[l]))
     }
+    /// Lanes where `!(self <= rhs)`.
     #[inline(always)]
     pub fn not_le_bits(self, rhs: Self) -> u64 {
         #[allow(clippy::neg_cmp_op_on_partial_ord)]
         avx4::cmp_bits::<L, { avx4::NLE }>(self, rhs)
             .unwrap_or_else(|| lane_bits::<L>(|l| !(self.0[l] <= rhs.0[l])))
     }
+    /// Lanes where `!(self < rhs)`.
     #[inline(always)]
     pub fn not_lt_bits(self, rhs: Self) -> u64 {
         #[allow(clippy::neg_cmp_op_on_partial_ord)]
         avx4::cmp_bits::<L, { avx4::NLT }>(self, rhs)
             .unwrap_or_else(|| lane_bits::<L>(|l| !(self.0[l] < rhs.0[l])))
     }
+    /// Lanes where `!(self > rhs)`.
     #[inline(always)]
     pub fn not_gt_bits(self, rhs: Self) -> u64 {
         #[allow(clippy::neg_cmp_op_on_partial_ord)]

@@ -21,6 +21,7 @@ use crate::HenonHeiles;
 /// A method with its settings.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MethodRun {
+    /// The method.
     pub method: Method,
     /// The tolerance in force (adaptive methods; `None` for tangent-map methods).
     pub delta: Option<f64>,

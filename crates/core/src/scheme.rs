@@ -18,13 +18,20 @@ pub enum Op {
     /// q ← q + aτ p.
     Drift(f64),
     /// p ← p − bτ ∇V(q) + γτ³ ∇K(q), K = |∇V|² (γ = g/2 for a corrector, 0 for a plain kick).
-    Kick { b: f64, gamma: f64 },
+    Kick {
+        /// Coefficient b of the kick.
+        b: f64,
+        /// Coefficient γ of the corrector term.
+        gamma: f64,
+    },
 }
 
 /// Which sub-map a scheme's sequence starts (and, being palindromic, ends) with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum First {
+    /// Starts with a drift.
     Drift,
+    /// Starts with a kick.
     Kick,
 }
 
@@ -189,6 +196,7 @@ impl Scheme {
         }
     }
 
+    /// Which sub-map the sequence starts with.
     pub fn first(&self) -> First {
         self.first
     }

@@ -7,8 +7,11 @@ use crate::tangent::{Phase, StepPart, Stepping, TangentMap};
 /// A point where the orbit crosses q1 = 0 upwards (p1 > 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Crossing<const N: usize> {
+    /// Time of the crossing.
     pub t: f64,
+    /// Coordinates at the crossing (q1 = 0).
     pub q: [f64; N],
+    /// Momenta at the crossing (p1 > 0).
     pub p: [f64; N],
 }
 
@@ -17,8 +20,10 @@ pub struct Crossing<const N: usize> {
 pub enum SectionError {
     /// 2(E − V) − |p_rest|² ≤ 0: the point is outside the energy surface's section.
     NotOnSection {
+        /// The value of 2(E − V) − |p_rest|².
         radicand: f64,
     },
+    /// A coordinate or the energy is NaN or infinite.
     NonFinite,
 }
 
@@ -73,9 +78,13 @@ pub fn on_section<H: Hamiltonian<N>, const N: usize>(
 /// p2_width⌋ = j (a grid's cells, and the indices beyond it).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CellLattice {
+    /// q_2 where cell column 0 starts.
     pub q2_origin: f64,
+    /// p_2 where cell row 0 starts.
     pub p2_origin: f64,
+    /// Width of a cell along q_2.
     pub q2_width: f64,
+    /// Width of a cell along p_2.
     pub p2_width: f64,
 }
 
@@ -104,9 +113,13 @@ impl CellLattice {
 /// q1 < 0 and ends one step τ later with q1 = `q1_end` ≥ 0.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CrossingStep<const N: usize> {
+    /// Coordinates at the step's start (q1 < 0).
     pub q: [f64; N],
+    /// Momenta at the step's start.
     pub p: [f64; N],
+    /// Time of the step's start.
     pub t: f64,
+    /// q1 at the step's end (≥ 0).
     pub q1_end: f64,
 }
 

@@ -10,6 +10,7 @@ use crate::tangent::Phase;
 
 /// A number the Taylor integrator can run in: it must convert to f64 for step control.
 pub trait Scalar: Real {
+    /// The nearest f64.
     fn to_f64(self) -> f64;
 }
 
@@ -31,9 +32,13 @@ impl Scalar for DoubleDouble {
 /// one for `f64` and `DoubleDouble`, several for their SIMD forms. Step control is per lane;
 /// the recursion and the evaluation run on every lane at once.
 pub trait Lanewise: Real {
+    /// Numbers held (1 for `f64` and `DoubleDouble`).
     const LANES: usize;
+    /// The type of one lane's number.
     type Lane: Scalar;
+    /// Lane `i`'s number.
     fn lane(self, i: usize) -> Self::Lane;
+    /// Sets lane `i`'s number to `x`.
     fn set_lane(&mut self, i: usize, x: Self::Lane);
 }
 
@@ -128,9 +133,15 @@ pub fn set_phase_lane<T: Lanewise, const N: usize, const K: usize>(
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum StepFailure {
     /// The step size fell below what t's precision can resolve.
-    StepTooSmall { t: f64 },
+    StepTooSmall {
+        /// Time at which the step failed.
+        t: f64,
+    },
     /// NaN or infinity in the state or the error estimate.
-    NonFinite { t: f64 },
+    NonFinite {
+        /// Time at which the step failed.
+        t: f64,
+    },
 }
 
 /// What a batch's step gives its lanes: each asked lane's outcome (`None` for the others) and
@@ -156,6 +167,7 @@ pub struct StepEnd<T, const K: usize> {
 }
 
 impl<T: crate::real::Real, const K: usize> StepEnd<T, K> {
+    /// The sums over `y`.
     #[inline(always)]
     pub fn of<const N: usize>(y: &Phase<T, N, K>) -> Self {
         StepEnd {

@@ -16,9 +16,13 @@ use crate::scheme::{Op, Scheme};
 /// A phase-space point and `K` deviation vectors (δq, δp).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Phase<T, const N: usize, const K: usize> {
+    /// Coordinates.
     pub q: [T; N],
+    /// Momenta.
     pub p: [T; N],
+    /// The δq part of each deviation vector.
     pub dq: [[T; N]; K],
+    /// The δp part of each deviation vector.
     pub dp: [[T; N]; K],
 }
 
@@ -36,6 +40,7 @@ impl<T: Copy, const N: usize, const K: usize> Phase<T, N, K> {
 }
 
 impl<T: Real, const N: usize, const K: usize> Phase<T, N, K> {
+    /// All zeros.
     pub fn zero() -> Self {
         let z = [T::splat(0.0); N];
         Phase {
@@ -244,6 +249,7 @@ fn alternating_shape(body: &[SubMap]) -> Option<(bool, Vec<f64>)> {
 }
 
 impl<'h, H> TangentMap<'h, H> {
+    /// Compiles `scheme` for step size `tau` on `ham`.
     pub fn new(ham: &'h H, scheme: &Scheme, tau: f64) -> Self {
         let ops = scheme.ops();
         let scaled: Vec<SubMap> = ops.iter().map(|&o| SubMap::scaled(o, tau)).collect();
@@ -260,10 +266,12 @@ impl<'h, H> TangentMap<'h, H> {
         }
     }
 
+    /// The step size τ.
     pub fn tau(&self) -> f64 {
         self.tau
     }
 
+    /// The Hamiltonian integrated.
     pub fn hamiltonian(&self) -> &'h H {
         self.ham
     }
@@ -671,11 +679,13 @@ impl StepShape for CorrectedDkd {
 /// A scalar orbit being advanced in steps of τ, its end-sub-map increment kept alongside.
 pub struct Stepping<'m, 'h, H, const N: usize, const K: usize> {
     map: &'m TangentMap<'h, H>,
+    /// The current state.
     pub x: Phase<f64, N, K>,
     inc: EdgeIncrement<f64, N, K>,
 }
 
 impl<'m, 'h, H: Hamiltonian<N>, const N: usize, const K: usize> Stepping<'m, 'h, H, N, K> {
+    /// Starts stepping from `x`.
     pub fn new(map: &'m TangentMap<'h, H>, x: Phase<f64, N, K>) -> Self {
         let inc = map.edge_increment(&x);
         Stepping { map, x, inc }

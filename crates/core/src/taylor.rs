@@ -146,10 +146,15 @@ impl TaylorSeries<2> for HenonHeiles {
 /// The Taylor coefficients of a phase point and its deviation vectors.
 #[derive(Clone, Debug)]
 pub struct Jet<T: Real, const N: usize, const K: usize> {
+    /// Coefficients of q.
     pub q: [Series<T>; N],
+    /// Coefficients of p.
     pub p: [Series<T>; N],
+    /// Coefficients of each deviation vector's δq.
     pub dq: [[Series<T>; N]; K],
+    /// Coefficients of each deviation vector's δp.
     pub dp: [[Series<T>; N]; K],
+    /// The highest order filled by the last [`Self::compute`].
     pub order: usize,
     /// 1/(k + 1) in `T`'s precision, computed once (a double-double division is dozens of
     /// operations, and the recursion needs one per order and step).
@@ -616,20 +621,24 @@ pub fn order_for(delta: f64) -> usize {
 #[derive(Clone, Debug)]
 pub struct Taylor<'h, H, T: Real, const N: usize, const K: usize> {
     ham: &'h H,
+    /// Tolerance δ (which decides the order).
     pub delta: f64,
     rule: StepRule,
     test: ReachTest,
     /// Time, in `T` so that steps landing on t_end are exact in extended precision too.
     t: T,
     t_prev: T,
+    /// Current state.
     pub y: Phase<T, N, K>,
     jet: Box<Jet<T, N, K>>,
+    /// Steps taken so far.
     pub steps: u64,
 }
 
 impl<'h, H: TaylorSeries<N>, T: Scalar + Lanewise<Lane = T>, const N: usize, const K: usize>
     Taylor<'h, H, T, N, K>
 {
+    /// An integration from `y` at time `t0` with tolerance `delta`.
     pub fn new(ham: &'h H, delta: f64, t0: f64, y: Phase<T, N, K>) -> Self {
         Taylor {
             ham,
@@ -644,6 +653,7 @@ impl<'h, H: TaylorSeries<N>, T: Scalar + Lanewise<Lane = T>, const N: usize, con
         }
     }
 
+    /// Current time, rounded to f64.
     pub fn t(&self) -> f64 {
         self.t.to_f64()
     }
@@ -653,6 +663,7 @@ impl<'h, H: TaylorSeries<N>, T: Scalar + Lanewise<Lane = T>, const N: usize, con
         self.rule.order
     }
 
+    /// Where the last step started, rounded to f64.
     pub fn t_prev(&self) -> f64 {
         self.t_prev.to_f64()
     }
@@ -705,6 +716,7 @@ pub struct TaylorLanes<'h, H, T: Lanewise, const N: usize, const K: usize, const
 impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const L: usize>
     TaylorLanes<'h, H, T, N, K, L>
 {
+    /// `L` idle lanes with tolerance `delta`; [`Self::start`] starts each.
     pub fn new(ham: &'h H, delta: f64) -> Self {
         assert_eq!(T::LANES, L, "one lane of T per integration");
         let zero = T::Lane::splat(0.0);
@@ -812,14 +824,17 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
         (self.step(t_end), factors)
     }
 
+    /// Lane `l`'s current time, rounded to f64.
     pub fn t(&self, l: usize) -> f64 {
         self.t[l].to_f64()
     }
 
+    /// Where lane `l`'s last step started, rounded to f64.
     pub fn t_prev(&self, l: usize) -> f64 {
         self.t_prev[l].to_f64()
     }
 
+    /// Lane `l`'s steps so far.
     pub fn steps(&self, l: usize) -> u64 {
         self.steps[l]
     }

@@ -95,14 +95,20 @@ fn splitmix64(state: &mut u64) -> u64 {
 /// A rectangular grid over (q2, p2) with its compatible cells in canonical order.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Grid {
+    /// The energy H of the section.
     pub energy: f64,
+    /// Cells along q2.
     pub n_q2: usize,
+    /// Cells along p2.
     pub n_p2: usize,
+    /// Bounds (low, high) of q2.
     pub q2: (f64, f64),
+    /// Bounds (low, high) of p2.
     pub p2: (f64, f64),
     /// A unit of work of `tile.0 × tile.1` cells ([`Grid::tile_count`]): the spec's tile, or
     /// the distributed scheduler's lease unit ([`Grid::retiled`]).
     pub tile: (usize, usize),
+    /// The canonical order fast PSS walks the cells in.
     pub order: ScanOrder,
     compatible: Vec<bool>,
     /// [`Grid::spacing`], computed once: the cell of every crossing divides by it.
@@ -164,6 +170,7 @@ impl Grid {
         g
     }
 
+    /// Number of cells, compatible or not.
     pub fn cells(&self) -> usize {
         self.n_q2 * self.n_p2
     }
@@ -229,10 +236,12 @@ impl Grid {
         }
     }
 
+    /// Whether `cell`'s centre lies on the section (p1² > 0).
     pub fn is_compatible(&self, cell: u32) -> bool {
         self.compatible[cell as usize]
     }
 
+    /// Number of compatible cells.
     pub fn compatible_count(&self) -> usize {
         self.canonical.len()
     }

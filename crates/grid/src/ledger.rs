@@ -15,7 +15,10 @@ use std::collections::BTreeMap;
 /// Whether visited cells are labelled too.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Mode {
+    /// Fast PSS: an orbit labels its own cell and every still-unlabelled compatible cell its
+    /// upward crossings fall in.
     FastPss,
+    /// An orbit labels only its own cell: every compatible cell is integrated.
     Full,
 }
 
@@ -23,10 +26,13 @@ pub enum Mode {
 /// (`integration.indicators`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CellIndicators {
+    /// Finite-time maximal Lyapunov exponent (1/t) ln‖w1(t)‖.
     pub mle: f64,
     /// MEGNO Y and its running mean ⟨Y⟩.
     pub megno: f64,
+    /// ⟨Y⟩, the running mean of MEGNO.
     pub megno_mean: f64,
+    /// Fast Lyapunov indicator.
     pub fli: f64,
 }
 
@@ -35,11 +41,15 @@ pub struct CellIndicators {
 pub struct Outcome {
     /// The cell the orbit started from.
     pub cell: u32,
+    /// The orbit's class (`None` for orbits that escaped or failed).
     pub class: Option<Class>,
+    /// How the orbit ended.
     pub status: Status,
+    /// The orbit's final SALI.
     pub sali: f64,
     /// Compatible cells its upward crossings fell in, sorted and deduplicated.
     pub visited: Vec<u32>,
+    /// Integration steps taken.
     pub steps: u64,
     /// The time the orbit reached: t_final, or when it stopped (early stop, escape, …).
     pub t_end: f64,
@@ -52,13 +62,17 @@ pub struct Outcome {
 /// The label a cell received.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Label {
+    /// The class of the labelling orbit.
     pub class: Option<Class>,
+    /// How the labelling orbit ended.
     pub status: Status,
+    /// The labelling orbit's final SALI.
     pub sali: f64,
     /// The cell whose orbit labelled this one.
     pub source: u32,
     /// The time that orbit reached (its escape time for `escaped`).
     pub t_end: f64,
+    /// The labelling orbit's indicators (as in [`Outcome::indicators`]).
     pub indicators: Option<CellIndicators>,
 }
 
@@ -217,8 +231,11 @@ pub struct Ledger {
     running: BTreeMap<usize, Partial>,
     /// Outcomes committed, in canonical order (their checkpoints feed Fig. 7).
     pub committed: Vec<Outcome>,
+    /// Outcomes dropped and speculative orbits abandoned (their cell was already labelled).
     pub dropped: u64,
+    /// Steps of the dropped outcomes and abandoned orbits.
     pub dropped_steps: u64,
+    /// Steps of the committed outcomes.
     pub committed_steps: u64,
     /// Cells labelled since the last [`Ledger::take_newly_labelled`].
     newly_labelled: Vec<u32>,
@@ -234,6 +251,7 @@ pub struct Ledger {
 }
 
 impl Ledger {
+    /// An empty ledger of `grid` in `mode`.
     pub fn new(grid: &Grid, mode: Mode) -> Self {
         let cells = grid.cells();
         Ledger {
@@ -263,10 +281,12 @@ impl Ledger {
         }
     }
 
+    /// Whether visited cells are labelled too.
     pub fn mode(&self) -> Mode {
         self.mode
     }
 
+    /// The label of `cell` (`None` while it has none).
     pub fn label(&self, cell: u32) -> Option<Label> {
         let o = self
             .committed
@@ -281,6 +301,7 @@ impl Ledger {
         })
     }
 
+    /// Whether `cell` has a label.
     pub fn is_labelled(&self, cell: u32) -> bool {
         self.flags[cell as usize] & LABELLED != 0
     }

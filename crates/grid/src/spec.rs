@@ -67,15 +67,21 @@ fn allowed_keys(path: &str) -> &'static [&'static str] {
 
 pub use crate::ledger::Mode;
 
+/// The section grid of a job, before a run's energy decides its default bounds.
 #[derive(Clone, Debug, PartialEq)]
 pub struct GridSpec {
+    /// Cells along q2.
     pub n_q2: usize,
+    /// Cells along p2.
     pub n_p2: usize,
+    /// Cells per tile along q2.
     pub tile_q2: usize,
+    /// Cells per tile along p2.
     pub tile_p2: usize,
     /// The bounds the spec gives, or `None`: the allowed region at each run's energy
     /// ([`default_bounds`]).
     pub q2_range: Option<(f64, f64)>,
+    /// Like `q2_range`, for p2.
     pub p2_range: Option<(f64, f64)>,
     /// The canonical order fast PSS walks the cells in.
     pub order: ScanOrder,
@@ -89,20 +95,30 @@ pub struct RunSpec {
     pub energy: f64,
     /// Fast PSS or every cell integrated (`grid.mode`, or one of `sweep.mode`).
     pub mode: Mode,
+    /// The integration method (`sweep.method`).
     pub method: Method,
+    /// Renormalisation interval τ (`sweep.tau`).
     pub tau: f64,
+    /// Time to integrate to (`sweep.t_final`).
     pub t_final: f64,
     /// The tolerance of an adaptive method, as honoured (None for tangent-map methods).
     pub delta: Option<f64>,
 }
 
+/// A parsed and checked job spec.
 #[derive(Clone, Debug, PartialEq)]
 pub struct JobSpec {
+    /// The job's name (`name`, default `salient`): it names the output folder.
     pub name: String,
+    /// The section grid.
     pub grid: GridSpec,
+    /// The sweep's members, one run each.
     pub runs: Vec<RunSpec>,
+    /// How adaptive methods meet the renormalisation times.
     pub protocol: Protocol,
+    /// How the initial deviation vectors are chosen.
     pub deviation: Deviation,
+    /// Classification thresholds and the early stop.
     pub thresholds: Thresholds,
     /// The finite-time mLE, MEGNO and FLI of every cell of the full-mode runs
     /// (`integration.indicators`); their orbits run to t_final (no early stop).
@@ -246,6 +262,7 @@ impl fmt::Display for SpecError {
 
 impl std::error::Error for SpecError {}
 
+/// The result of parsing or checking a spec.
 pub type SpecResult<T> = Result<T, SpecError>;
 
 /// A usage error, forced onto one line whatever the user's strings held.

@@ -8,19 +8,24 @@ use std::collections::BTreeMap;
 /// Cells per class (and per status for orbits without a class) over the compatible cells.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Counts {
+    /// Cells labelled regular.
     pub regular: u64,
+    /// Cells labelled sticky.
     pub sticky: u64,
+    /// Cells labelled chaotic.
     pub chaotic: u64,
     /// Cells labelled by orbits that escaped or failed (no class).
     pub unclassified: u64,
     /// Of those, cells labelled by orbits that escaped (above the escape energy).
     pub escaped: u64,
+    /// Compatible cells counted.
     pub compatible: u64,
     /// Labelled cells per orbit status.
     pub status: BTreeMap<&'static str, u64>,
 }
 
 impl Counts {
+    /// Counts one compatible cell labelled with `class` and `status`.
     pub fn add(&mut self, class: Option<Class>, status: Status) {
         self.compatible += 1;
         match class {
@@ -64,10 +69,12 @@ impl Counts {
         )
     }
 
+    /// Unclassified cells in percent of the compatible cells.
     pub fn percent_unclassified(&self) -> f64 {
         self.pct(self.unclassified)
     }
 
+    /// Escaped cells in percent of the compatible cells.
     pub fn percent_escaped(&self) -> f64 {
         self.pct(self.escaped)
     }

@@ -7,6 +7,9 @@
 
 #![allow(clippy::large_enum_variant)]
 
+/// The messages and services of `proto/salient/v1`.
+// Generated from proto/salient/v1 by scripts/gen-proto.sh; not documented item by item.
+#[allow(missing_docs)]
 pub mod v1 {
     include!("generated/salient.v1.rs");
 }
@@ -29,6 +32,7 @@ pub const PROTOCOL_VERSION: u32 = 2;
 /// cells stays far below it).
 pub const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 
+/// The wire form of an orbit's class (`None`: the orbit has none).
 pub fn class_to_wire(c: Option<Class>) -> OrbitClass {
     match c {
         None => OrbitClass::None,
@@ -48,6 +52,7 @@ fn class_from_wire(v: i32) -> Result<Option<Class>, String> {
     }
 }
 
+/// The wire form of an orbit's status.
 pub fn status_to_wire(s: Status) -> OrbitStatus {
     match s {
         Status::Ok => OrbitStatus::Ok,

@@ -18,7 +18,9 @@ pub const CELL_MAP_SIZE: (u32, u32) = (1100, 760);
 /// One category of a [`CellMap`]: its legend text and colour.
 #[derive(Clone, Copy, Debug)]
 pub struct Category<'a> {
+    /// Legend text.
     pub label: &'a str,
+    /// Colour as RGB.
     pub colour: [u8; 3],
 }
 
@@ -26,6 +28,7 @@ pub struct Category<'a> {
 /// `edges[k + 1]`, drawn as a stepped colour bar labelled `label` instead of in the legend.
 #[derive(Clone, Copy, Debug)]
 pub struct Scale<'a> {
+    /// Label of the colour bar.
     pub label: &'a str,
     /// Increasing, finite.
     pub edges: &'a [f64],
@@ -37,15 +40,25 @@ pub struct Scale<'a> {
 /// the bands of `scale`, when there is one).
 #[derive(Clone, Copy, Debug)]
 pub struct CellMap<'a> {
+    /// Category index of each cell, `codes[i * ny + j]` for cell (i, j).
     pub codes: &'a [u8],
+    /// The categories the codes index.
     pub categories: &'a [Category<'a>],
+    /// Cells along x.
     pub nx: usize,
+    /// Cells along y.
     pub ny: usize,
+    /// Outer edges of the grid along x.
     pub x_range: (f64, f64),
+    /// Outer edges of the grid along y.
     pub y_range: (f64, f64),
+    /// Title above the map.
     pub title: &'a str,
+    /// Label of the x axis.
     pub x_label: &'a str,
+    /// Label of the y axis.
     pub y_label: &'a str,
+    /// Bands of a quantity drawn as a colour bar (`None`: legend only).
     pub scale: Option<Scale<'a>>,
 }
 

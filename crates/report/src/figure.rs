@@ -26,7 +26,9 @@ pub(crate) trait Figure {
 /// The output formats a figure is written in, by the path's extension.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ImageFormat {
+    /// PNG bitmap (`.png`).
     Png,
+    /// SVG vector image (`.svg`).
     Svg,
 }
 

@@ -14,9 +14,13 @@ use crate::loglog::{check_lengths, draw_legend, Line, Swatch, PALETTE};
 /// A plot with linear x and y axes.
 #[derive(Clone, Debug)]
 pub struct LinePlot<'a> {
+    /// Title above the plot.
     pub title: &'a str,
+    /// Label of the x axis.
     pub x_label: &'a str,
+    /// Label of the y axis.
     pub y_label: &'a str,
+    /// Lines (or point sets) drawn.
     pub lines: Vec<Line<'a>>,
     /// The y axis's span; `None`: the data's, padded.
     pub y_range: Option<(f64, f64)>,

@@ -15,6 +15,7 @@ use crate::figure::{write_figure, Figure};
 pub struct Line<'a> {
     /// Legend text; an empty label leaves the line out of the legend.
     pub label: &'a str,
+    /// x coordinates of the points.
     pub xs: &'a [f64],
     /// Must have the same length as `xs`.
     pub ys: &'a [f64],
@@ -25,16 +26,22 @@ pub struct Line<'a> {
 pub struct HLine<'a> {
     /// Legend text; an empty label leaves the line out of the legend.
     pub label: &'a str,
+    /// Height of the line.
     pub y: f64,
 }
 
 /// A plot with logarithmic x and y axes.
 #[derive(Clone, Debug)]
 pub struct LogLogPlot<'a> {
+    /// Title above the plot.
     pub title: &'a str,
+    /// Label of the x axis.
     pub x_label: &'a str,
+    /// Label of the y axis.
     pub y_label: &'a str,
+    /// Lines (or point sets) drawn.
     pub lines: Vec<Line<'a>>,
+    /// Horizontal reference lines.
     pub hlines: Vec<HLine<'a>>,
     /// Optional text labels attached to points: (x, y, text), as work-precision plots use.
     pub point_labels: Vec<(f64, f64, String)>,
@@ -294,6 +301,7 @@ impl Figure for LogLogPlot<'_> {
 /// plotting areas equally wide.
 #[derive(Clone, Debug)]
 pub struct Panels<'a> {
+    /// The plots, top to bottom.
     pub panels: Vec<LogLogPlot<'a>>,
 }
 

@@ -14,15 +14,20 @@ use crate::error::ReportError;
 /// A coordinate axis: its name (also its dimension's), its values and what they are.
 #[derive(Clone, Copy, Debug)]
 pub struct Axis<'a> {
+    /// Name of the axis variable and of its dimension.
     pub name: &'a str,
+    /// What the values are (the `long_name` attribute).
     pub long_name: &'a str,
+    /// Coordinates along the axis.
     pub values: &'a [f64],
 }
 
 /// The values of a variable over the two axes, row-major: `[i * ny + j]` at (x_i, y_j).
 #[derive(Clone, Copy, Debug)]
 pub enum Values<'a> {
+    /// 32-bit integers.
     I32(&'a [i32]),
+    /// 64-bit floats.
     F64(&'a [f64]),
 }
 
@@ -38,7 +43,9 @@ impl Values<'_> {
 /// An attribute's value.
 #[derive(Clone, Debug, PartialEq)]
 pub enum AttrValue {
+    /// A string.
     Text(String),
+    /// A 64-bit float.
     F64(f64),
     /// Integers: `netcdf3` pads byte attributes with fill bytes where readers expect zeros, so
     /// a list of codes is kept in 32-bit integers.
@@ -50,18 +57,26 @@ pub enum AttrValue {
 /// its variables by equality, which NaN defeats).
 #[derive(Clone, Debug)]
 pub struct GridVar<'a> {
+    /// Name of the variable.
     pub name: &'a str,
+    /// What the values are (the `long_name` attribute).
     pub long_name: &'a str,
+    /// The values, row-major over (x, y).
     pub values: Values<'a>,
+    /// Further attributes of the variable.
     pub attrs: Vec<(&'a str, AttrValue)>,
 }
 
 /// A whole file: the axes, the variables on them and the global attributes.
 #[derive(Clone, Debug)]
 pub struct GridFile<'a> {
+    /// The x axis (first dimension).
     pub x: Axis<'a>,
+    /// The y axis (second dimension).
     pub y: Axis<'a>,
+    /// The variables on the two axes.
     pub vars: Vec<GridVar<'a>>,
+    /// Global attributes.
     pub attrs: Vec<(&'a str, AttrValue)>,
 }
 

@@ -3,11 +3,14 @@
 /// A table of already formatted cells.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Table {
+    /// Column headers.
     pub headers: Vec<String>,
+    /// Rows, each with one cell per header.
     pub rows: Vec<Vec<String>>,
 }
 
 impl Table {
+    /// An empty table with these column headers.
     pub fn new(headers: &[&str]) -> Self {
         Table {
             headers: headers.iter().map(|h| h.to_string()).collect(),

@@ -54,6 +54,7 @@ pub struct Params {
     pub bandwidth: f64,
     /// Each one-way latency varies by up to this fraction, from a seeded sequence.
     pub jitter: f64,
+    /// Seed of the pseudo-random sequence the jitter comes from.
     pub seed: u64,
     /// The coordinator's timing and lease sizes.
     pub config: Config,
@@ -118,15 +119,21 @@ const SEQUENTIAL_ROUND: usize = 256;
 /// One simulated job with W workers.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct RunStats {
+    /// Workers W.
     pub workers: usize,
     /// From the first lease to the job's end, virtual seconds.
     pub wall_s: f64,
+    /// Orbits integrated to their end.
     pub orbits_finished: u64,
+    /// Orbits abandoned before their end (their cell already labelled).
     pub orbits_abandoned: u64,
     /// Steps integrated by all workers, abandoned orbits' included.
     pub steps: u64,
+    /// Polls the workers sent.
     pub polls: u64,
+    /// Leases the coordinator granted.
     pub leases: u64,
+    /// Cells in those leases.
     pub leased_cells: u64,
     /// Outcomes the coordinator received.
     pub outcomes: u64,
@@ -134,10 +141,13 @@ pub struct RunStats {
     pub coordinator_cpu_s: f64,
     /// Seconds the coordinator was busy (its CPU, or the fixed cost per poll).
     pub coordinator_busy_s: f64,
+    /// Bytes of the encoded poll requests.
     pub request_bytes: u64,
+    /// Bytes of the encoded poll replies.
     pub reply_bytes: u64,
     /// Of the replies: relayed outcomes.
     pub relay_bytes: u64,
+    /// How long the commits waited for the frontier cell, by where it stood.
     pub frontier: FrontierWait,
     /// Samples of the job's progress over virtual time (written to timeline.csv, not to the
     /// table's JSON).
@@ -193,9 +203,11 @@ impl FrontierWait {
 pub struct Sample {
     /// Virtual seconds since the workers started.
     pub t_s: f64,
+    /// Orbits running in the workers' lanes.
     pub running_orbits: usize,
     /// Threads busy: computing, or in either side's network stack.
     pub busy_threads: usize,
+    /// The scheduler's progress of the job.
     pub progress: Progress,
 }
 
@@ -210,7 +222,9 @@ const FIRST_SAMPLE_NS: u64 = 1_000_000;
 /// earlier orbit labelled it.
 #[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct Sequential {
+    /// Orbits integrated.
     pub orbits: u64,
+    /// Steps of those orbits.
     pub steps: u64,
     /// Steps of the longest of those orbits.
     pub longest_steps: u64,
@@ -219,8 +233,10 @@ pub struct Sequential {
 /// One row of a scaling table.
 #[derive(Clone, Debug, Serialize)]
 pub struct Point {
+    /// The simulated job's totals.
     #[serde(flatten)]
     pub stats: RunStats,
+    /// Threads of each worker.
     pub threads: usize,
     /// One worker's wall over this one's.
     pub speedup: f64,
@@ -232,6 +248,7 @@ pub struct Point {
     pub extra_steps_pct: f64,
     /// The coordinator's busy share of the wall, in %.
     pub coordinator_busy_pct: f64,
+    /// Coordinator CPU microseconds per outcome received.
     pub coordinator_us_per_outcome: f64,
     /// [`open_share`] of as many cells as these workers' lanes run orbits at once.
     pub open_share: f64,
@@ -348,6 +365,7 @@ impl Simulation {
         self.step_ns
     }
 
+    /// Orbits a worker thread runs at once.
     pub fn lanes(&self) -> usize {
         self.lanes
     }

@@ -46,10 +46,15 @@ const BUSY_TIMEOUT: Duration = Duration::from_secs(5);
 /// coordinator's business.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum JobState {
+    /// Submitted, not yet started.
     Queued,
+    /// Started (a lease of it went out), not yet finished.
     Running,
+    /// Finished with every run complete.
     Done,
+    /// Cancelled by a client.
     Cancelled,
+    /// Given up with an error.
     Failed,
 }
 
@@ -90,10 +95,13 @@ impl JobState {
 /// One job as stored.
 #[derive(Clone, Debug, PartialEq)]
 pub struct JobRow {
+    /// The job's id.
     pub id: u64,
+    /// The job's name.
     pub name: String,
     /// The job's spec, as text the store does not interpret.
     pub spec: String,
+    /// Where the job is in its life cycle.
     pub state: JobState,
     /// Times in milliseconds since the Unix epoch, as given by the caller.
     pub submitted_ms: i64,
@@ -101,22 +109,30 @@ pub struct JobRow {
     pub started_ms: Option<i64>,
     /// Set by the first move to a terminal state.
     pub finished_ms: Option<i64>,
+    /// Why the job failed ([`JobState::Failed`]).
     pub error: Option<String>,
 }
 
 /// The stored outcome of one cell: an opaque blob the coordinator encoded.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StoredOutcome {
+    /// The cell whose orbit produced the outcome.
     pub cell: u32,
+    /// The encoded outcome.
     pub data: Vec<u8>,
 }
 
 /// One accepted report of a worker: outcomes of cells of one tile attempt.
 pub struct Report<'a> {
+    /// The job reported on.
     pub job: u64,
+    /// Index of the run within the job.
     pub run: u32,
+    /// Index of the tile within the run.
     pub tile: u32,
+    /// Attempt of the tile's lease.
     pub attempt: u32,
+    /// Id of the worker that reported.
     pub worker: &'a str,
     /// CPU time the worker spent on this attempt, in nanoseconds.
     pub cpu_ns: u64,

@@ -33,9 +33,13 @@ use tokio::sync::mpsc;
 
 /// How the worker runs.
 pub struct Options {
+    /// URL of the coordinator.
     pub coordinator: String,
+    /// Threads integrating orbits.
     pub threads: usize,
+    /// Name the worker registers under (shown in the coordinator's logs).
     pub name: String,
+    /// Bearer token sent to the coordinator.
     pub token: Option<String>,
     /// PEM of the certificate authority that signed the coordinator's certificate.
     pub tls_ca: Option<Vec<u8>>,

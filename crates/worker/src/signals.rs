@@ -31,6 +31,7 @@ pub(crate) struct Signals {
     pub(crate) crossings: HashMap<(LeaseKey, u32), (Vec<u32>, bool)>,
 }
 
+/// A lease as (job, run, tile, attempt).
 pub type LeaseKey = (u64, u32, u32, u32);
 
 /// A fast-PSS run's own ledger and how far it got in the coordinator's relayed outcomes (its
@@ -76,6 +77,7 @@ impl Signals {
     }
 }
 
+/// The key of lease `l`.
 pub fn lease_key(l: &v1::TileRef) -> LeaseKey {
     (l.job, l.run, l.tile, l.attempt)
 }

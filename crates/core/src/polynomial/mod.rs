@@ -90,6 +90,7 @@ impl Polynomial {
         }
     }
 
+    /// `self` plus `other`.
     pub fn add(&self, other: &Polynomial) -> Polynomial {
         let terms = self.terms.iter().chain(&other.terms).cloned().collect();
         Polynomial::from_terms(self.dof, terms)
@@ -108,6 +109,7 @@ impl Polynomial {
         Polynomial::from_terms(self.dof, terms)
     }
 
+    /// `self` times `other`.
     pub fn mul(&self, other: &Polynomial) -> Polynomial {
         let mut terms = Vec::with_capacity(self.terms.len() * other.terms.len());
         for a in &self.terms {
@@ -191,7 +193,9 @@ impl Polynomial {
 /// Why a text is not a polynomial: the character position (from 0) and what was wrong there.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ParseError {
+    /// Character position (from 0) of the error.
     pub at: usize,
+    /// What was wrong there.
     pub message: String,
 }
 

@@ -85,9 +85,9 @@ impl<const N: usize> PolynomialSystem<N> {
     }
 }
 
-/// The largest value of Σ_t |c_t| r^{deg t} over the polynomials, which bounds each of them
-/// on the ball |q| ≤ r (every |q_i| ≤ r there), times √(count): a bound of the Euclidean norm
-/// of the vector they form, and of the spectral norm of a matrix (through its Frobenius norm).
+/// A bound over the ball |q| ≤ r of the Euclidean norm of the vector the polynomials form (and
+/// so of the spectral norm of a matrix, through its Frobenius norm): √(Σ_p b_p²) with
+/// b_p = Σ_t |c_t| r^{deg t} over p's terms, which bounds |p| there (every |q_i| ≤ r).
 fn norm_bound(polys: &[Polynomial], r: f64) -> f64 {
     let mut sum2 = 0.0;
     for p in polys {

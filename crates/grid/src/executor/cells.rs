@@ -31,6 +31,7 @@ struct CellsFeed<'a> {
 /// time).
 #[derive(Clone, Debug)]
 pub struct OrbitTrace {
+    /// The orbit's outcome.
     pub outcome: Outcome,
     /// (cell, step of its first crossing), in crossing order; empty unless traced.
     pub crossings: Vec<(u32, u64)>,

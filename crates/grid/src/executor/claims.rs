@@ -44,6 +44,7 @@ pub struct Claims {
 }
 
 impl Claims {
+    /// Claims of `grid` with none set, the frontier at canonical position 0.
     pub fn new(grid: &Grid) -> Self {
         let unset = || {
             owned(
@@ -210,6 +211,7 @@ impl Claims {
         self.running[cell as usize].load(Ordering::Relaxed)
     }
 
+    /// Marks whether `cell`'s orbit runs in some lane.
     pub fn set_running(&self, cell: u32, running: bool) {
         self.running[cell as usize].store(running, Ordering::Relaxed);
         if !running {
@@ -287,6 +289,7 @@ pub struct LocalLedger {
 }
 
 impl LocalLedger {
+    /// The ledger of `grid` in `mode` (full mode keeps only the coordinator's claims).
     pub fn new(grid: &Grid, mode: Mode) -> Self {
         match mode {
             Mode::FastPss => {
@@ -324,10 +327,12 @@ impl LocalLedger {
         self.offers.load(Ordering::Acquire)
     }
 
+    /// The grid of the run.
     pub fn grid(&self) -> &Grid {
         &self.grid
     }
 
+    /// The claims the streams read.
     pub fn claims(&self) -> &Claims {
         &self.claims
     }

@@ -62,7 +62,9 @@ fn drive(
 /// How every cell's orbit is integrated.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CellRun {
+    /// The method with its settings.
     pub run: MethodRun,
+    /// What to integrate (τ, t_final, thresholds, deviation vectors).
     pub config: OrbitConfig,
     /// Log-spaced checkpoints per decade at which full-mode orbits are also classified (0: none).
     pub checkpoints_per_decade: u32,
