@@ -4,6 +4,7 @@
 
 use crate::common::{c1, r1, ENERGY};
 use crate::integrators::assert_jacobian_and_symplectic;
+use proptest::prelude::*;
 use salient_core::adaptive::Protocol;
 use salient_core::dd::DoubleDouble;
 use salient_core::dop853::{Dop853, Dop853Config};
@@ -395,5 +396,129 @@ fn an_eight_particle_fpu_beta_chain_runs_and_conserves_energy() {
         let error = r.energy_error_max.unwrap();
         assert_eq!(r.t_reached, 1e3, "{method:?}: {:?}", r.status);
         assert!(error < bound, "{method:?}: max |ΔH/H| {error:e}");
+    }
+}
+
+/// The end point of the orbit from `x` after `t` with `scheme` at step `tau`.
+fn end_point<H: Hamiltonian<2>>(
+    ham: &H,
+    scheme: &Scheme,
+    tau: f64,
+    t: f64,
+    x: ([f64; 2], [f64; 2]),
+) -> ([f64; 2], [f64; 2]) {
+    let map = TangentMap::new(ham, scheme, tau);
+    let (mut q, mut p) = x;
+    for _ in 0..(t / tau).round() as u64 {
+        map.orbit_step(&mut q, &mut p, tau);
+    }
+    (q, p)
+}
+
+/// Every scheme shows its order (2, 4 or 6) on a quartic potential that is not Hénon–Heiles:
+/// runs at τ and τ/2 against SRKN14a at τ = 1e-3, to t = 10.
+#[test]
+fn convergence_orders_on_another_potential_match_theory() {
+    let ham = system("q1^2/2 + 0.7*q2^2 + 0.3*q1^4 - q1*q2^3/5 + q2^2*q1 - 0.1*q1^3*q2");
+    let x = ([0.2, -0.15], [0.3, 0.25]);
+    let reference = end_point(&ham, &Scheme::by_name("srkn14a").unwrap(), 1e-3, 10.0, x);
+    let dist = |a: ([f64; 2], [f64; 2])| {
+        (0..2)
+            .map(|i| {
+                (a.0[i] - reference.0[i])
+                    .abs()
+                    .max((a.1[i] - reference.1[i]).abs())
+            })
+            .fold(0.0, f64::max)
+    };
+    for scheme in Scheme::all() {
+        let tau = match scheme.order {
+            6 => 0.3125,
+            4 if scheme.name == "aba864" => 0.25,
+            _ => 0.1,
+        };
+        let e1 = dist(end_point(&ham, &scheme, tau, 10.0, x));
+        let e2 = dist(end_point(&ham, &scheme, tau / 2.0, 10.0, x));
+        let order = (e1 / e2).log2();
+        assert!(
+            (order - scheme.order as f64).abs() <= 0.25,
+            "{}: observed order {order:.3}, expected {}",
+            scheme.name,
+            scheme.order
+        );
+    }
+}
+
+/// Text for the polynomial Σ c_t Π q_i^{e_ti} of `terms` in `dof` coordinates.
+fn text_of(terms: &[(f64, Vec<u32>)]) -> String {
+    let term = |(c, powers): &(f64, Vec<u32>)| {
+        let mut t = format!("({c:e})");
+        for (i, e) in powers.iter().enumerate() {
+            t += &format!("*q{}^{e}", i + 1);
+        }
+        t
+    };
+    terms.iter().map(term).collect::<Vec<_>>().join(" + ")
+}
+
+fn polynomial_case(dof: usize) -> impl Strategy<Value = (Vec<(f64, Vec<u32>)>, Vec<f64>)> {
+    let term = (-1.0..1.0f64, prop::collection::vec(0u32..4, dof));
+    (
+        prop::collection::vec(term, 1..8),
+        prop::collection::vec(-0.5..0.5f64, dof),
+    )
+}
+
+/// Exact first and second derivatives of a random polynomial (read from text) against central
+/// differences of the polynomial itself; mixed partials equal in either order.
+fn derivatives_match_differences(
+    terms: &[(f64, Vec<u32>)],
+    q: &[f64],
+) -> Result<(), TestCaseError> {
+    let dof = q.len();
+    let v = Polynomial::parse(&text_of(terms), dof).unwrap();
+    let h = 1e-5;
+    for k in 0..dof {
+        let (mut up, mut down) = (q.to_vec(), q.to_vec());
+        up[k] += h;
+        down[k] -= h;
+        let d = v.derivative(k);
+        let fd = (v.eval(&up) - v.eval(&down)) / (2.0 * h);
+        prop_assert!(
+            (d.eval(q) - fd).abs() < 1e-7,
+            "∂{k}: {} against {fd}",
+            d.eval(q)
+        );
+        for j in 0..dof {
+            let d2 = d.derivative(j);
+            // Mixed partials commute exactly.
+            prop_assert_eq!(&d2, &v.derivative(j).derivative(k));
+            let fd2 = (v.derivative(j).eval(&up) - v.derivative(j).eval(&down)) / (2.0 * h);
+            prop_assert!(
+                (d2.eval(q) - fd2).abs() < 1e-6,
+                "∂{j}∂{k}: {} against {fd2}",
+                d2.eval(q)
+            );
+        }
+    }
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    #[test]
+    fn derivatives_of_random_polynomials_in_2_dof((terms, q) in polynomial_case(2)) {
+        derivatives_match_differences(&terms, &q)?;
+    }
+
+    #[test]
+    fn derivatives_of_random_polynomials_in_3_dof((terms, q) in polynomial_case(3)) {
+        derivatives_match_differences(&terms, &q)?;
+    }
+
+    #[test]
+    fn derivatives_of_random_polynomials_in_8_dof((terms, q) in polynomial_case(8)) {
+        derivatives_match_differences(&terms, &q)?;
     }
 }
