@@ -76,25 +76,12 @@ pub trait Hamiltonian<const N: usize>: Send + Sync {
     /// closed form, which matters because this is the bulk of a tangent-map step's arithmetic.
     #[inline(always)]
     fn kick_terms<T: Real>(&self, q: &[T; N], b: Option<T>, c: Option<T>) -> KickTerms<T, N> {
-        let zero = T::splat(0.0);
-        let mut force = [zero; N];
-        let mut matrix = [[zero; N]; N];
-        if let Some(b) = b {
-            let nb = -b;
-            let g = self.grad(q);
-            let h = self.hessian(q);
-            force = core::array::from_fn(|i| nb * g[i]);
-            matrix = core::array::from_fn(|i| core::array::from_fn(|j| nb * h[i][j]));
-        }
-        if let Some(c) = c {
-            let gk = self.corrector_grad(q);
-            let hk = self.corrector_hessian(q);
-            force = core::array::from_fn(|i| gk[i].mul_add(c, force[i]));
-            matrix = core::array::from_fn(|i| {
-                core::array::from_fn(|j| hk[i][j].mul_add(c, matrix[i][j]))
-            });
-        }
-        KickTerms { force, matrix }
+        KickTerms::compose(
+            b,
+            || (self.grad(q), self.hessian(q)),
+            c,
+            || (self.corrector_grad(q), self.corrector_hessian(q)),
+        )
     }
 
     /// Distance from the origin beyond which an orbit counts as escaped. Infinite when every
@@ -151,6 +138,36 @@ pub struct KickTerms<T, const N: usize> {
     pub force: [T; N],
     /// Its Jacobian: δp gains matrix·δq.
     pub matrix: [[T; N]; N],
+}
+
+impl<T: Real, const N: usize> KickTerms<T, N> {
+    /// −b∇V + c∇K and −b D²V + c D²K from (∇V, D²V) and (∇K, D²K), each pair asked for only
+    /// when its coefficient is present (`None` stands for zero).
+    #[inline(always)]
+    pub fn compose(
+        b: Option<T>,
+        plain: impl FnOnce() -> ([T; N], [[T; N]; N]),
+        c: Option<T>,
+        corrector: impl FnOnce() -> ([T; N], [[T; N]; N]),
+    ) -> Self {
+        let zero = T::splat(0.0);
+        let mut force = [zero; N];
+        let mut matrix = [[zero; N]; N];
+        if let Some(b) = b {
+            let nb = -b;
+            let (g, h) = plain();
+            force = core::array::from_fn(|i| nb * g[i]);
+            matrix = core::array::from_fn(|i| core::array::from_fn(|j| nb * h[i][j]));
+        }
+        if let Some(c) = c {
+            let (gk, hk) = corrector();
+            force = core::array::from_fn(|i| gk[i].mul_add(c, force[i]));
+            matrix = core::array::from_fn(|i| {
+                core::array::from_fn(|j| hk[i][j].mul_add(c, matrix[i][j]))
+            });
+        }
+        KickTerms { force, matrix }
+    }
 }
 
 /// Suprema over a ball |q| ≤ r (Euclidean norms; spectral norms of the matrices).

@@ -160,23 +160,12 @@ impl<const N: usize> Hamiltonian<N> for PolynomialSystem<N> {
     /// −b∇V + c∇K and −b D²V + c D²K, each pair from one program.
     #[inline(always)]
     fn kick_terms<T: Real>(&self, q: &[T; N], b: Option<T>, c: Option<T>) -> KickTerms<T, N> {
-        let zero = T::splat(0.0);
-        let mut force = [zero; N];
-        let mut matrix = [[zero; N]; N];
-        if let Some(b) = b {
-            let nb = -b;
-            let (g, h) = Self::vector_and_matrix(&self.kick, q);
-            force = core::array::from_fn(|i| nb * g[i]);
-            matrix = core::array::from_fn(|i| core::array::from_fn(|j| nb * h[i][j]));
-        }
-        if let Some(c) = c {
-            let (gk, hk) = Self::vector_and_matrix(&self.corrector, q);
-            force = core::array::from_fn(|i| gk[i].mul_add(c, force[i]));
-            matrix = core::array::from_fn(|i| {
-                core::array::from_fn(|j| hk[i][j].mul_add(c, matrix[i][j]))
-            });
-        }
-        KickTerms { force, matrix }
+        KickTerms::compose(
+            b,
+            || Self::vector_and_matrix(&self.kick, q),
+            c,
+            || Self::vector_and_matrix(&self.corrector, q),
+        )
     }
 
     fn derivative_bounds(&self, r: f64) -> Option<DerivativeBounds> {
