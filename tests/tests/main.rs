@@ -14,6 +14,7 @@ mod maps_cli;
 mod orbit_cli;
 mod plain_c_cli;
 mod polynomial_cli;
+mod polynomial_grid_cli;
 mod precision_cli;
 mod readme_cli;
 mod results_nc_cli;

@@ -5,6 +5,7 @@
 use std::path::Path;
 
 use salient_core::orbit::Status;
+use salient_grid::SystemSpec;
 use salient_report::{write_netcdf, AttrValue, Axis, GridFile, GridVar, Values};
 
 use crate::run::{RunResult, CLASS_CODE_NAMES, INDICATORS};
@@ -118,7 +119,7 @@ pub fn write_results_nc(
     let th = job.thresholds;
     let mut attrs = vec![
         ("title", text(&crate::maps::figure_title(job, r))),
-        ("system", text("henon-heiles")),
+        ("system", text(job.surface.system().kind())),
         ("energy", AttrValue::F64(s.energy)),
         ("method", text(&s.method.name())),
         ("tau", AttrValue::F64(s.tau)),
@@ -130,6 +131,10 @@ pub fn write_results_nc(
         ("salient_version", text(env!("CARGO_PKG_VERSION"))),
         ("spec", text(&job.source.to_string())),
     ];
+    if let SystemSpec::Polynomial { dof, potential } = job.surface.system() {
+        attrs.push(("dof", AttrValue::I32s(vec![*dof as i32])));
+        attrs.push(("potential", text(potential)));
+    }
     if th.energy_drift.is_finite() {
         attrs.push(("energy_drift_limit", AttrValue::F64(th.energy_drift)));
     }
@@ -137,15 +142,21 @@ pub fn write_results_nc(
         attrs.push(("delta", AttrValue::F64(d)));
         attrs.push(("protocol", text(job.protocol.as_str())));
     }
+    let [x_name, y_name] = job.surface.axis_names();
+    let [x_label, y_label] = job.surface.axis_labels();
+    let (x_long, y_long) = (
+        format!("{x_label} at the cell centres"),
+        format!("{y_label} at the cell centres"),
+    );
     let file = GridFile {
         x: Axis {
-            name: "q2",
-            long_name: "q₂ at the cell centres",
+            name: x_name,
+            long_name: &x_long,
             values: &q2,
         },
         y: Axis {
-            name: "p2",
-            long_name: "p₂ at the cell centres",
+            name: y_name,
+            long_name: &y_long,
             values: &p2,
         },
         vars,

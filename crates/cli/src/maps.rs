@@ -153,7 +153,7 @@ struct MapFile<'a> {
 
 /// A map of `r`'s grid.
 fn cell_map<'a>(
-    r: &RunResult,
+    r: &'a RunResult,
     codes: &'a [u8],
     categories: &'a [Category<'a>],
     title: &'a str,
@@ -168,8 +168,8 @@ fn cell_map<'a>(
         x_range: g.q2,
         y_range: g.p2,
         title,
-        x_label: "q₂",
-        y_label: "p₂",
+        x_label: g.surface.axis_labels()[0],
+        y_label: g.surface.axis_labels()[1],
         scale,
     }
 }

@@ -775,6 +775,15 @@ pub fn mode_name(mode: Mode) -> &'static str {
     }
 }
 
+/// The grid's bounds keyed by the section's axes: {"q2": [lo, hi], "p2": [lo, hi]}.
+fn bounds_json(grid: &Grid) -> Value {
+    let [x, y] = grid.surface.axis_names();
+    let mut bounds = serde_json::Map::new();
+    bounds.insert(x.into(), json!([grid.q2.0, grid.q2.1]));
+    bounds.insert(y.into(), json!([grid.p2.0, grid.p2.1]));
+    Value::Object(bounds)
+}
+
 fn run_json(r: &RunResult) -> Value {
     let c = &r.counts;
     let (reg, st, ch) = c.percent();
@@ -787,7 +796,7 @@ fn run_json(r: &RunResult) -> Value {
         "mode": mode_name(r.ledger.mode()),
         "indicators": r.indicators,
         "cells": [r.grid.n_q2, r.grid.n_p2],
-        "bounds": { "q2": [r.grid.q2.0, r.grid.q2.1], "p2": [r.grid.p2.0, r.grid.p2.1] },
+        "bounds": bounds_json(&r.grid),
         "order": r.grid.order.name(),
         "order_seed": match r.grid.order { ScanOrder::Shuffle(seed) => Some(seed), _ => None },
         "compatible": c.compatible,

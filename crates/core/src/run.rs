@@ -215,6 +215,97 @@ pub fn integrate_feed_adaptive_henon_heiles(
     )
 }
 
+/// The grid's two drivers on one system with two deviation vectors — the batched tangent-map
+/// driver and the adaptive methods' — compiled here once per system: Hénon–Heiles, and the
+/// polynomial systems of 2 and 3 degrees of freedom (grids run in those; chains only as
+/// single orbits). The grid's executor is generic over this trait and matches once over the
+/// systems it knows.
+pub trait FeedDrivers<const N: usize>: TaylorSeries<N> + Sized {
+    /// [`integrate_feed_on`] in `lanes` (4 or 8) SIMD lanes on `isa`.
+    fn integrate_feed(
+        isa: Isa,
+        lanes: usize,
+        map: &TangentMap<'_, Self>,
+        config: &OrbitConfig,
+        requests: &Requests,
+        feed: &mut dyn BatchFeed<N>,
+    );
+    /// [`integrate_feed_adaptive`] on this system.
+    fn integrate_feed_adaptive(
+        &self,
+        run: &MethodRun,
+        energy: f64,
+        config: &OrbitConfig,
+        requests: &Requests,
+        guided: bool,
+        feed: &mut dyn BatchFeed<N>,
+    );
+}
+
+impl FeedDrivers<2> for HenonHeiles {
+    fn integrate_feed(
+        isa: Isa,
+        lanes: usize,
+        map: &TangentMap<'_, Self>,
+        config: &OrbitConfig,
+        requests: &Requests,
+        feed: &mut dyn BatchFeed<2>,
+    ) {
+        integrate_feed_henon_heiles(isa, lanes, map, config, requests, feed)
+    }
+    fn integrate_feed_adaptive(
+        &self,
+        run: &MethodRun,
+        energy: f64,
+        config: &OrbitConfig,
+        requests: &Requests,
+        guided: bool,
+        feed: &mut dyn BatchFeed<2>,
+    ) {
+        integrate_feed_adaptive_henon_heiles(run, energy, config, requests, guided, feed)
+    }
+}
+
+/// [`FeedDrivers`] for the polynomial systems of the listed sizes.
+macro_rules! polynomial_feed_drivers {
+    ($($n:literal),*) => {$(
+        impl FeedDrivers<$n> for PolynomialSystem<$n> {
+            fn integrate_feed(
+                isa: Isa,
+                lanes: usize,
+                map: &TangentMap<'_, Self>,
+                config: &OrbitConfig,
+                requests: &Requests,
+                mut feed: &mut dyn BatchFeed<$n>,
+            ) {
+                match lanes {
+                    4 => integrate_feed_on::<_, $n, 2, 4>(isa, map, config, requests, &mut feed),
+                    8 => integrate_feed_on::<_, $n, 2, 8>(isa, map, config, requests, &mut feed),
+                    _ => panic!("the batched driver runs 4 or 8 lanes, not {lanes}"),
+                }
+            }
+            fn integrate_feed_adaptive(
+                &self,
+                run: &MethodRun,
+                energy: f64,
+                config: &OrbitConfig,
+                requests: &Requests,
+                guided: bool,
+                mut feed: &mut dyn BatchFeed<$n>,
+            ) {
+                integrate_feed_adaptive::<_, $n, 2>(
+                    self, run, energy, config, requests, guided, &mut feed,
+                )
+            }
+        }
+    )*};
+}
+
+/// The sizes grids run in ([`FeedDrivers`]).
+pub const GRID_DOFS: [usize; 2] = [2, 3];
+
+polynomial_feed_drivers!(2, 3);
+
 /// [`run_orbit`] for the adaptive methods, under a [`Watch`] that sees the crossings as they
 /// are found and may abandon the orbit. Tangent-map orbits go through
 /// [`integrate`](crate::orbit::integrate) or the batched driver instead.

@@ -1,7 +1,9 @@
-//! The grid of cells on the surface of section q1 = 0, p1 > 0, its tiles and canonical order.
+//! The grid of cells on a surface of section (Hénon–Heiles' q1 = 0, p1 > 0 unless the grid
+//! is made [`Grid::on_surface`]), its tiles and canonical order.
 
-use salient_core::section::{p1_squared, CellLattice};
-use salient_core::HenonHeiles;
+use crate::surface::Surface;
+use salient_core::section::CellLattice;
+use std::sync::Arc;
 
 /// The order in which fast PSS walks the grid's compatible cells: a property of the grid alone,
 /// never of its tiles (tiles are units of work, and cutting the grid differently must not
@@ -92,9 +94,13 @@ fn splitmix64(state: &mut u64) -> u64 {
     z ^ (z >> 31)
 }
 
-/// A rectangular grid over (q2, p2) with its compatible cells in canonical order.
+/// A rectangular grid over the section's two axes with its compatible cells in canonical
+/// order. The fields and methods say q2 and p2 for the first and second axis: Hénon–Heiles'
+/// axes, and whatever the [`Surface`] names for another system.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Grid {
+    /// The system and its section.
+    pub surface: Arc<Surface>,
     /// The energy H of the section.
     pub energy: f64,
     /// Cells along q2.
@@ -144,9 +150,25 @@ impl Grid {
         tile: (usize, usize),
         order: ScanOrder,
     ) -> Self {
+        let surface = Surface::henon_heiles();
+        Self::on_surface(surface, energy, [n_q2, n_p2], [q2, p2], tile, order)
+    }
+
+    /// A grid on `surface` of `cells[0] × cells[1]` cells along its axes within `bounds`. A
+    /// cell is compatible when its centre lies on the section (the plane's momentum squared
+    /// > 0 there).
+    pub fn on_surface(
+        surface: Arc<Surface>,
+        energy: f64,
+        [n_q2, n_p2]: [usize; 2],
+        [q2, p2]: [(f64, f64); 2],
+        tile: (usize, usize),
+        order: ScanOrder,
+    ) -> Self {
         assert!(n_q2 > 0 && n_p2 > 0 && tile.0 > 0 && tile.1 > 0);
         assert!(n_q2 * n_p2 <= u32::MAX as usize / 2);
         let mut g = Grid {
+            surface,
             energy,
             n_q2,
             n_p2,
@@ -161,7 +183,7 @@ impl Grid {
         };
         for cell in 0..n_q2 * n_p2 {
             let (x, y) = g.centre(cell as u32);
-            g.compatible[cell] = p1_squared(&HenonHeiles, energy, &[0.0, x], &[0.0, y]) > 0.0;
+            g.compatible[cell] = g.surface.momentum_squared(energy, x, y) > 0.0;
         }
         g.canonical = order.arrange(n_q2, n_p2, &g.compatible);
         for (pos, &cell) in g.canonical.iter().enumerate() {
@@ -188,6 +210,13 @@ impl Grid {
     /// The cells' widths along q2 and p2.
     pub fn spacing(&self) -> (f64, f64) {
         self.step
+    }
+
+    /// The phase-space point cell `cell` starts from, in the coordinates the integrators run
+    /// in ([`Surface::start`]); `None` for an incompatible cell.
+    pub fn start<const N: usize>(&self, cell: u32) -> Option<([f64; N], [f64; N])> {
+        let (x, y) = self.centre(cell);
+        self.surface.start(self.energy, x, y)
     }
 
     /// The cell's centre (q2, p2): its initial condition.

@@ -1,5 +1,5 @@
 //! Grids of initial conditions on the surface of section: geometry, tiles and canonical order
-//! ([`geometry`]), the fast-PSS [`ledger`] that commits orbit outcomes in canonical order, the
+//! ([`geometry`]) on the system and section of [`surface`], the fast-PSS [`ledger`] that commits orbit outcomes in canonical order, the
 //! tile [`executor`] that integrates cells on a rayon pool, and the classification counts
 //! ([`summary`]), job [`spec`]s parsed from text and validated, and the process's CPU clock
 //! ([`cpu`]). No files, no networking.
@@ -12,6 +12,7 @@ mod pages;
 pub mod record;
 pub mod spec;
 pub mod summary;
+pub mod surface;
 
 pub use cpu::process_cpu_seconds;
 pub use executor::{
@@ -21,3 +22,4 @@ pub use executor::{
 pub use geometry::{Grid, ScanOrder};
 pub use ledger::{CellIndicators, Forecast, Label, Ledger, Mode, Outcome, OutcomeNews};
 pub use summary::Counts;
+pub use surface::{Coordinate, SectionSpec, Surface, SystemSpec};

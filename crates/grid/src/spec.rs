@@ -8,6 +8,7 @@
 
 use crate::executor::CellRun;
 use crate::geometry::{Grid, ScanOrder};
+use crate::surface::{Coordinate, SectionSpec, Surface, SystemSpec};
 use salient_core::adaptive::Protocol;
 use salient_core::orbit::{Deviation, OrbitConfig, Thresholds};
 use salient_core::run::MethodRun;
@@ -15,6 +16,7 @@ use salient_core::Method;
 use serde::Serialize;
 use serde_json::{Map, Value};
 use std::fmt;
+use std::sync::Arc;
 
 /// Largest grid a spec may ask for unless the caller sets another cap.
 pub const MAX_CELLS: usize = 16_000_000;
@@ -36,12 +38,34 @@ const DEFAULT_TILE: usize = 20;
 pub const SCHEMA: &[(&str, &[&str])] = &[
     (
         "",
-        &["name", "system", "grid", "sweep", "integration", "classify"],
+        &[
+            "name",
+            "system",
+            "section",
+            "grid",
+            "sweep",
+            "integration",
+            "classify",
+        ],
     ),
-    ("system", &["kind", "energy"]),
+    ("system", &["kind", "energy", "dof", "potential"]),
+    ("section", &["plane", "axes", "fixed"]),
+    ("section.fixed", &COORDINATES),
     (
         "grid",
-        &["cells", "tile", "mode", "q2", "p2", "order", "order_seed"],
+        &[
+            "cells",
+            "tile",
+            "mode",
+            "q1",
+            "q2",
+            "q3",
+            "p1",
+            "p2",
+            "p3",
+            "order",
+            "order_seed",
+        ],
     ),
     (
         "sweep",
@@ -57,6 +81,9 @@ pub const SCHEMA: &[(&str, &[&str])] = &[
     ),
 ];
 
+/// The coordinates a grid's section can name (grids run in up to 3 degrees of freedom).
+const COORDINATES: [&str; 6] = ["q1", "q2", "q3", "p1", "p2", "p3"];
+
 /// The keys [`SCHEMA`] allows in the table at `path` (none for a table it does not name).
 fn allowed_keys(path: &str) -> &'static [&'static str] {
     SCHEMA
@@ -67,21 +94,22 @@ fn allowed_keys(path: &str) -> &'static [&'static str] {
 
 pub use crate::ledger::Mode;
 
-/// The section grid of a job, before a run's energy decides its default bounds.
+/// The section grid of a job, before a run's energy decides its default bounds. q2 and p2
+/// name the section's first and second axis (Hénon–Heiles' q2 and p2).
 #[derive(Clone, Debug, PartialEq)]
 pub struct GridSpec {
-    /// Cells along q2.
+    /// Cells along the first axis.
     pub n_q2: usize,
-    /// Cells along p2.
+    /// Cells along the second axis.
     pub n_p2: usize,
-    /// Cells per tile along q2.
+    /// Cells per tile along the first axis.
     pub tile_q2: usize,
-    /// Cells per tile along p2.
+    /// Cells per tile along the second axis.
     pub tile_p2: usize,
-    /// The bounds the spec gives, or `None`: the allowed region at each run's energy
-    /// ([`default_bounds`]).
+    /// The bounds the spec gives, or `None`: Hénon–Heiles' allowed region at each run's energy
+    /// ([`default_bounds`]; a polynomial system's bounds are required).
     pub q2_range: Option<(f64, f64)>,
-    /// Like `q2_range`, for p2.
+    /// Like `q2_range`, for the second axis.
     pub p2_range: Option<(f64, f64)>,
     /// The canonical order fast PSS walks the cells in.
     pub order: ScanOrder,
@@ -110,6 +138,8 @@ pub struct RunSpec {
 pub struct JobSpec {
     /// The job's name (`name`, default `salient`): it names the output folder.
     pub name: String,
+    /// The system and its surface of section (`[system]`, `[section]`).
+    pub surface: Arc<Surface>,
     /// The section grid.
     pub grid: GridSpec,
     /// The sweep's members, one run each.
@@ -140,12 +170,11 @@ impl JobSpec {
         let g = &self.grid;
         let energy = self.runs[index].energy;
         let (dq, dp) = default_bounds(energy);
-        Grid::with_order(
+        Grid::on_surface(
+            Arc::clone(&self.surface),
             energy,
-            g.n_q2,
-            g.n_p2,
-            g.q2_range.unwrap_or(dq),
-            g.p2_range.unwrap_or(dp),
+            [g.n_q2, g.n_p2],
+            [g.q2_range.unwrap_or(dq), g.p2_range.unwrap_or(dp)],
             (g.tile_q2, g.tile_p2),
             g.order,
         )
@@ -201,6 +230,7 @@ impl JobSpec {
 struct RawSpec {
     name: Option<String>,
     system: RawSystem,
+    section: Option<RawSection>,
     grid: RawGrid,
     sweep: RawSweep,
     integration: Option<RawIntegration>,
@@ -211,6 +241,16 @@ struct RawSpec {
 struct RawSystem {
     kind: String,
     energy: Option<f64>,
+    dof: Option<i128>,
+    potential: Option<String>,
+}
+
+#[derive(Serialize)]
+struct RawSection {
+    plane: Option<String>,
+    axes: Option<Vec<String>>,
+    /// The fixed coordinates in the order given.
+    fixed: Option<Map<String, Value>>,
 }
 
 #[derive(Serialize)]
@@ -218,8 +258,12 @@ struct RawGrid {
     cells: Vec<i128>,
     tile: Option<Vec<i128>>,
     mode: Option<String>,
+    q1: Option<Vec<f64>>,
     q2: Option<Vec<f64>>,
+    q3: Option<Vec<f64>>,
+    p1: Option<Vec<f64>>,
     p2: Option<Vec<f64>>,
+    p3: Option<Vec<f64>>,
     order: Option<String>,
     order_seed: Option<u64>,
 }
@@ -528,6 +572,7 @@ impl<'a> Table<'a> {
 fn read_raw(v: &Value) -> SpecResult<RawSpec> {
     let top = Table::new(v, "")?;
     let system = top.req_table("system")?;
+    let section = top.opt_table("section")?;
     let grid = top.req_table("grid")?;
     let sweep = top.req_table("sweep")?;
     let integration = top.opt_table("integration")?;
@@ -537,13 +582,35 @@ fn read_raw(v: &Value) -> SpecResult<RawSpec> {
         system: RawSystem {
             kind: system.req("kind", string)?,
             energy: system.opt("energy", number)?,
+            dof: system.opt("dof", integer)?,
+            potential: system.opt("potential", string)?,
+        },
+        section: match section {
+            Some(t) => Some(RawSection {
+                plane: t.opt("plane", string)?,
+                axes: t.opt_list("axes", string)?,
+                fixed: match t.opt_table("fixed")? {
+                    Some(f) => {
+                        for (k, v) in f.obj {
+                            number(v, &f.path(k))?;
+                        }
+                        Some(f.obj.clone())
+                    }
+                    None => None,
+                },
+            }),
+            None => None,
         },
         grid: RawGrid {
             cells: grid.req_list("cells", integer)?,
             tile: grid.opt_list("tile", integer)?,
             mode: grid.opt("mode", string)?,
+            q1: grid.opt_list("q1", number)?,
             q2: grid.opt_list("q2", number)?,
+            q3: grid.opt_list("q3", number)?,
+            p1: grid.opt_list("p1", number)?,
             p2: grid.opt_list("p2", number)?,
+            p3: grid.opt_list("p3", number)?,
             order: grid.opt("order", string)?,
             order_seed: grid.opt("order_seed", seed)?,
         },
@@ -639,7 +706,7 @@ fn range(
     Ok((lo, hi))
 }
 
-/// Largest energy a spec may ask for: six times the escape energy, where most orbits leave
+/// Largest Hénon–Heiles energy a spec may ask for: six times the escape energy, where most orbits leave
 /// within a few crossings.
 const MAX_ENERGY: f64 = 1.0;
 
@@ -725,9 +792,12 @@ fn modes_of(raw: &RawSpec) -> SpecResult<Vec<Mode>> {
 }
 
 /// The energies of the sweep: `system.energy`, or the list `sweep.energy` (one or the other).
-fn energies(raw: &RawSpec) -> SpecResult<Vec<f64>> {
+/// Hénon–Heiles' energies lie in (0, [`MAX_ENERGY`]]; a polynomial system's may be any finite
+/// number (its grid must still meet the section, see [`every_grid_meets_the_section`]).
+fn energies(raw: &RawSpec, system: &SystemSpec) -> SpecResult<Vec<f64>> {
+    let bounded = *system == SystemSpec::HenonHeiles;
     let check = |field: String, energy: f64| {
-        if energy.is_finite() && energy > 0.0 && energy <= MAX_ENERGY {
+        if !bounded || (energy > 0.0 && energy <= MAX_ENERGY) {
             Ok(energy)
         } else {
             Err(usage(format!(
@@ -754,19 +824,238 @@ fn energies(raw: &RawSpec) -> SpecResult<Vec<f64>> {
     }
 }
 
+/// The system and section of the spec (`[system]`, `[section]`), compiled.
+fn surface_of(raw: &RawSpec) -> SpecResult<Arc<Surface>> {
+    let sys = &raw.system;
+    let system = match sys.kind.as_str() {
+        "henon-heiles" => {
+            for (field, given) in [
+                ("dof", sys.dof.is_some()),
+                ("potential", sys.potential.is_some()),
+            ] {
+                if given {
+                    return Err(usage(format!(
+                        "system.{field} is for kind = \"polynomial\" (the henon-heiles system has its own)"
+                    )));
+                }
+            }
+            SystemSpec::HenonHeiles
+        }
+        "polynomial" => {
+            let dof = match sys.dof {
+                Some(d @ 2..=3) => d as usize,
+                Some(d) => {
+                    return Err(usage(format!(
+                        "system.dof must be 2 or 3 for a grid (got {d}; longer chains run as single orbits: salient orbit --potential … --dof N)"
+                    )))
+                }
+                None => return Err(usage("system.dof is required with kind = \"polynomial\" (2 or 3)")),
+            };
+            let potential = sys.potential.clone().ok_or_else(|| {
+                usage("system.potential is required with kind = \"polynomial\" (a polynomial in q1…qN, e.g. \"(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3\")")
+            })?;
+            SystemSpec::Polynomial { dof, potential }
+        }
+        other => {
+            return Err(usage(format!(
+                "system.kind must be \"henon-heiles\" or \"polynomial\" (got {other:?})"
+            )))
+        }
+    };
+    let section = section_of(raw.section.as_ref(), system.dof())?;
+    if system == SystemSpec::HenonHeiles && section != SectionSpec::henon_heiles() {
+        return Err(usage(
+            "section: the henon-heiles system runs on q1 = 0 with axes q2, p2 (write it as kind = \"polynomial\" for another section)",
+        ));
+    }
+    Surface::new(system, section).map_err(|e| match e.at {
+        Some(at) => {
+            let text = raw.system.potential.as_deref().unwrap_or_default();
+            let shown: String = text.chars().take(80).collect();
+            usage(format!(
+                "system.potential is not a polynomial: {} at character {} of {shown:?}",
+                e.message,
+                at + 1
+            ))
+        }
+        None => usage(format!("system: {}", e.message)),
+    })
+}
+
+/// The section of `[section]` in `dof` degrees of freedom: the plane (default q1), the axes
+/// (default the first other position and its momentum) and the fixed coordinates (every one
+/// left, each given once).
+fn section_of(raw: Option<&RawSection>, dof: usize) -> SpecResult<SectionSpec> {
+    let names: Vec<String> = (1..=dof)
+        .flat_map(|k| [format!("q{k}"), format!("p{k}")])
+        .collect();
+    let coordinate = |field: &str, name: &str| {
+        Coordinate::parse(name, dof).ok_or_else(|| {
+            usage(format!(
+                "{field} must be one of {} (got {name:?})",
+                names.join(", ")
+            ))
+        })
+    };
+    let plane = match raw.and_then(|r| r.plane.as_deref()) {
+        None => 0,
+        Some(name) => match coordinate("section.plane", name)? {
+            Coordinate::Q(k) => k,
+            Coordinate::P(_) => {
+                return Err(usage(format!(
+                    "section.plane must be a position q1…q{dof} (the section is q_k = 0 with p_k > 0; got {name:?})"
+                )))
+            }
+        },
+    };
+    let in_plane = |c: Coordinate| c.index() == plane;
+    let first_other = if plane == 0 { 1 } else { 0 };
+    let axes = match raw.and_then(|r| r.axes.as_ref()) {
+        None => [Coordinate::Q(first_other), Coordinate::P(first_other)],
+        Some(list) if list.len() != 2 => {
+            return Err(usage(format!(
+                "section.axes must be a list of two coordinates (got {})",
+                count(list.len())
+            )))
+        }
+        Some(list) => {
+            let a = coordinate("section.axes[0]", &list[0])?;
+            let b = coordinate("section.axes[1]", &list[1])?;
+            if in_plane(a) || in_plane(b) || a == b {
+                return Err(usage(format!(
+                    "section.axes must be two different coordinates other than q{0} and p{0} (the plane's; got {list:?})",
+                    plane + 1
+                )));
+            }
+            [a, b]
+        }
+    };
+    if dof == 2 && axes != [Coordinate::Q(first_other), Coordinate::P(first_other)] {
+        return Err(usage(format!(
+            "section.axes must be [\"q{0}\", \"p{0}\"] in 2 degrees of freedom",
+            first_other + 1
+        )));
+    }
+    let left: Vec<Coordinate> = (0..dof)
+        .filter(|&k| k != plane)
+        .flat_map(|k| [Coordinate::Q(k), Coordinate::P(k)])
+        .filter(|c| !axes.contains(c))
+        .collect();
+    let mut fixed = Vec::new();
+    if let Some(given) = raw.and_then(|r| r.fixed.as_ref()) {
+        for (name, v) in given {
+            let c = coordinate("section.fixed", name)?;
+            if !left.contains(&c) {
+                return Err(usage(format!(
+                    "section.fixed.{name} is not free to fix: the plane's pair and the axes are not fixed (fix {})",
+                    list_names(&left)
+                )));
+            }
+            fixed.push((c, v.as_f64().expect("read as a finite number")));
+        }
+    }
+    let missing: Vec<Coordinate> = left
+        .iter()
+        .copied()
+        .filter(|c| !fixed.iter().any(|(f, _)| f == c))
+        .collect();
+    if !missing.is_empty() {
+        return Err(usage(format!(
+            "section.fixed must give {} (every coordinate that is neither the plane's nor an axis)",
+            list_names(&missing)
+        )));
+    }
+    Ok(SectionSpec { plane, axes, fixed })
+}
+
+/// "q3, p3".
+fn list_names(coords: &[Coordinate]) -> String {
+    let names: Vec<String> = coords.iter().map(|c| c.name()).collect();
+    names.join(", ")
+}
+
+/// The grid's bounds along the section's axes. Hénon–Heiles: `grid.q2`/`grid.p2`, each
+/// optional and within the allowed region at every energy. A polynomial system: one key per
+/// axis, named after it, required. A key for a coordinate that is no axis is refused.
+#[allow(clippy::type_complexity)]
+fn bounds_of(
+    g: &RawGrid,
+    surface: &Surface,
+    energies: &[f64],
+) -> SpecResult<(Option<(f64, f64)>, Option<(f64, f64)>)> {
+    let given = [
+        ("q1", &g.q1),
+        ("q2", &g.q2),
+        ("q3", &g.q3),
+        ("p1", &g.p1),
+        ("p2", &g.p2),
+        ("p3", &g.p3),
+    ];
+    let axes = surface.section().axis_names();
+    if let Some((name, _)) = given
+        .iter()
+        .find(|(name, v)| v.is_some() && !axes.iter().any(|a| a == name))
+    {
+        return Err(usage(format!(
+            "grid.{name} bounds no axis (the section's axes are {}, {})",
+            axes[0], axes[1]
+        )));
+    }
+    let bound = |axis: &str| given.iter().find(|(n, _)| *n == axis).map(|(_, v)| *v);
+    let [a, b] = [bound(&axes[0]), bound(&axes[1])].map(|v| v.expect("an axis has a key"));
+    if *surface.system() != SystemSpec::HenonHeiles {
+        let any = (f64::NEG_INFINITY, f64::INFINITY);
+        let read = |axis: &str, v: &Option<Vec<f64>>| {
+            match v {
+            Some(_) => range(&format!("grid.{axis}"), v, any, 0.0).map(Some),
+            None => Err(usage(format!(
+                "grid.{axis} is required for a polynomial system: [lo, hi] along the section's axis {axis} (cells whose centre lies outside the allowed region are skipped)"
+            ))),
+        }
+        };
+        return Ok((read(&axes[0], a)?, read(&axes[1], b)?));
+    }
+    // Bounds the spec gives must lie in the allowed region at every energy of the sweep.
+    let (mut q2_range, mut p2_range) = (None, None);
+    for &energy in energies {
+        let (dq, dp) = default_bounds(energy);
+        if a.is_some() {
+            q2_range = Some(range("grid.q2", a, dq, energy)?);
+        }
+        if b.is_some() {
+            p2_range = Some(range("grid.p2", b, dp, energy)?);
+        }
+    }
+    Ok((q2_range, p2_range))
+}
+
+/// A polynomial system's grid must hold a cell on the section at every energy of the sweep.
+fn every_grid_meets_the_section(job: &JobSpec) -> SpecResult<()> {
+    let mut seen = Vec::new();
+    for (index, run) in job.runs.iter().enumerate() {
+        if seen.contains(&run.energy.to_bits()) {
+            continue;
+        }
+        seen.push(run.energy.to_bits());
+        if job.grid(index).compatible_count() == 0 {
+            let axes = job.surface.section().axis_names();
+            return Err(usage(format!(
+                "grid: no cell's centre lies on the section at energy {} (the plane's momentum² ≤ 0 at every centre): widen grid.{} / grid.{}, or check system.energy and section.fixed",
+                run.energy, axes[0], axes[1]
+            )));
+        }
+    }
+    Ok(())
+}
+
 fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
     let source = serde_json::to_value(&raw).expect("a read spec holds only finite numbers");
     let mut warnings = Vec::new();
 
     let name = raw.name.clone().unwrap_or_else(|| "salient".into());
     check_name(&name)?;
-    if raw.system.kind != "henon-heiles" {
-        return Err(usage(format!(
-            "system.kind must be \"henon-heiles\" (got {:?})",
-            raw.system.kind
-        )));
-    }
-    let energies = energies(&raw)?;
+    let surface = surface_of(&raw)?;
+    let energies = energies(&raw, surface.system())?;
 
     let g = &raw.grid;
     let [n_q2, n_p2] = pair_usize("grid.cells", &g.cells, [MAX_AXIS, MAX_AXIS])?;
@@ -798,16 +1087,14 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
             order.name()
         ));
     }
-    // Bounds the spec gives must lie in the allowed region at every energy of the sweep.
-    let (mut q2_range, mut p2_range) = (None, None);
-    for &energy in &energies {
-        let (dq, dp) = default_bounds(energy);
-        if g.q2.is_some() {
-            q2_range = Some(range("grid.q2", &g.q2, dq, energy)?);
-        }
-        if g.p2.is_some() {
-            p2_range = Some(range("grid.p2", &g.p2, dp, energy)?);
-        }
+    let (q2_range, p2_range) = bounds_of(g, &surface, &energies)?;
+    if modes.contains(&Mode::FastPss) && surface.system().dof() > 2 {
+        return Err(usage(format!(
+            "fast PSS runs in 2 degrees of freedom only (system.dof = {}: an orbit's crossings \
+             lie in a {}-dimensional section, not on the grid's plane): set grid.mode = \"full\"",
+            surface.system().dof(),
+            2 * surface.system().dof() - 2
+        )));
     }
 
     let s = &raw.sweep;
@@ -1010,8 +1297,9 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
             }
         }
     }
-    Ok(JobSpec {
+    let job = JobSpec {
         name,
+        surface,
         grid: GridSpec {
             n_q2,
             n_p2,
@@ -1028,7 +1316,11 @@ fn validate(raw: RawSpec, max_cells: usize) -> SpecResult<JobSpec> {
         indicators,
         warnings,
         source,
-    })
+    };
+    if matches!(job.surface.system(), SystemSpec::Polynomial { .. }) {
+        every_grid_meets_the_section(&job)?;
+    }
+    Ok(job)
 }
 
 #[cfg(test)]
@@ -1069,6 +1361,28 @@ energy_drift = 0.5
   "integration": {"protocol": "free", "deviation": "random", "seed": 7},
   "classify": {"regular": 1e-3, "chaotic": 1e-9, "early_stop": false, "energy_drift": 0.5}
 }"#;
+
+    const GOOD_POLYNOMIAL: &str = r#"
+name = "p"
+[system]
+kind = "polynomial"
+dof = 3
+potential = "(q1^2 + q2^2 + q3^2)/2 + q1^2*q2 + q1^2*q3"
+energy = 0.1
+[section]
+plane = "q1"
+axes = ["q2", "p2"]
+fixed = { q3 = 0.0, p3 = 0.05 }
+[grid]
+cells = [20, 20]
+mode = "full"
+q2 = [-0.4, 0.4]
+p2 = [-0.4, 0.4]
+[sweep]
+method = ["tm-sbab2c"]
+tau = [0.5]
+t_final = [100]
+"#;
 
     const MINIMAL: &str = r#"
 [system]
@@ -1274,8 +1588,9 @@ t_final = [1e3]
 
     #[test]
     fn the_schema_is_every_key_the_parser_reads() {
-        // `source` holds every field the parser reads (absent ones as null); GOOD has every table.
-        let source = parse(GOOD, false).unwrap().source;
+        // `source` holds every field the parser reads (absent ones as null); between them GOOD
+        // and GOOD_POLYNOMIAL have every table.
+        let sources = [GOOD, GOOD_POLYNOMIAL].map(|t| parse(t, false).unwrap().source);
         let keys = |v: &Value| -> Vec<String> {
             let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
             k.sort();
@@ -1286,20 +1601,113 @@ t_final = [1e3]
         tables.dedup();
         assert_eq!(tables.len(), SCHEMA.len(), "a table listed twice");
         for (table, allowed) in SCHEMA {
-            let v = if table.is_empty() {
-                &source
-            } else {
-                &source[*table]
+            let at = |source: &Value| {
+                let mut v = source.clone();
+                for key in table.split('.').filter(|k| !k.is_empty()) {
+                    v = v[key].clone();
+                }
+                v
             };
+            let v = sources
+                .iter()
+                .map(at)
+                .find(Value::is_object)
+                .unwrap_or_else(|| panic!("[{table}] in no test spec"));
             let mut want: Vec<String> = allowed.iter().map(|k| k.to_string()).collect();
             want.sort();
-            assert_eq!(keys(v), want, "[{table}]");
+            if *table == "section.fixed" {
+                // The coordinates a section leaves free: some of them in any one spec.
+                assert!(keys(&v).iter().all(|k| want.contains(k)), "[{table}]");
+            } else {
+                assert_eq!(keys(&v), want, "[{table}]");
+            }
         }
         // Every table the top level allows has its keys in SCHEMA.
         for key in allowed_keys("") {
-            if source[*key].is_object() {
+            if sources.iter().any(|s| s[*key].is_object()) {
                 assert!(!allowed_keys(key).is_empty(), "[{key}]");
             }
+        }
+    }
+
+    /// A polynomial system's spec: its surface, its bounds along the named axes, and fast PSS
+    /// allowed in 2 dof; Hénon–Heiles written as a polynomial has the built-in's grid.
+    #[test]
+    fn polynomial_systems_take_their_section_from_the_spec() {
+        let j = parse(GOOD_POLYNOMIAL, false).unwrap();
+        let section = j.surface.section();
+        assert_eq!(section.axis_names(), ["q2", "p2"]);
+        assert_eq!(
+            section.fixed,
+            vec![(Coordinate::P(2), 0.05), (Coordinate::Q(2), 0.0)]
+        );
+        let grid = j.grid(0);
+        assert_eq!((grid.q2, grid.p2), ((-0.4, 0.4), (-0.4, 0.4)));
+        assert!(grid.compatible_count() > 0 && grid.compatible_count() < grid.cells());
+
+        let hh = GOOD
+            .replace(
+                "kind = \"henon-heiles\"",
+                "kind = \"polynomial\"\ndof = 2\npotential = \"(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3\"",
+            )
+            .replace("mode = \"full\"", "mode = \"full\"\nq2 = [-0.43, 0.67]\np2 = [-0.5, 0.5]");
+        let built_in = GOOD.replace(
+            "mode = \"full\"",
+            "mode = \"full\"\nq2 = [-0.43, 0.67]\np2 = [-0.5, 0.5]",
+        );
+        let (a, b) = (parse(&hh, false).unwrap(), parse(&built_in, false).unwrap());
+        assert_eq!(a.grid(0).canonical(), b.grid(0).canonical());
+        assert_ne!(a, b, "the systems differ");
+
+        // Another plane in 2 dof: q2 = 0, axes (q1, p1), fast PSS allowed.
+        let plane = GOOD_POLYNOMIAL
+            .replace("dof = 3", "dof = 2")
+            .replace("+ q3^2", "")
+            .replace(" + q1^2*q3", "")
+            .replace("plane = \"q1\"", "plane = \"q2\"")
+            .replace(
+                "axes = [\"q2\", \"p2\"]\nfixed = { q3 = 0.0, p3 = 0.05 }",
+                "",
+            )
+            .replace("mode = \"full\"", "mode = \"fast-pss\"")
+            .replace("q2 = [-0.4, 0.4]\np2", "q1 = [-0.4, 0.4]\np1");
+        let j = parse(&plane, false).unwrap();
+        assert_eq!(j.surface.section().axis_names(), ["q1", "p1"]);
+        assert_eq!(j.mode(0), Mode::FastPss);
+    }
+
+    #[test]
+    fn bad_systems_and_sections_name_their_field() {
+        let p = GOOD_POLYNOMIAL;
+        let cases = [
+            (p.replace("\"polynomial\"", "\"quartic\""), "system.kind must be \"henon-heiles\" or \"polynomial\" (got \"quartic\")"),
+            (p.replace("dof = 3", "dof = 8"), "system.dof must be 2 or 3 for a grid (got 8;"),
+            (p.replace("dof = 3\n", ""), "system.dof is required with kind = \"polynomial\""),
+            (p.replace("potential = \"(q1^2 + q2^2 + q3^2)/2 + q1^2*q2 + q1^2*q3\"\n", ""), "system.potential is required with kind = \"polynomial\""),
+            (p.replace("+ q1^2*q2", "+ *q2"), "system.potential is not a polynomial: "),
+            (p.replace("q1^2*q2", "q1/q2"), "system.potential is not a polynomial: "),
+            (p.replace("q1^2*q3", "q1^2*q4"), "system.potential is not a polynomial: "),
+            (p.replace("plane = \"q1\"", "plane = \"p1\""), "section.plane must be a position q1…q3"),
+            (p.replace("plane = \"q1\"", "plane = \"q4\""), "section.plane must be one of q1, p1, q2, p2, q3, p3 (got \"q4\")"),
+            (p.replace("axes = [\"q2\", \"p2\"]", "axes = [\"q1\", \"p2\"]"), "section.axes must be two different coordinates other than q1 and p1"),
+            (p.replace("axes = [\"q2\", \"p2\"]", "axes = [\"q2\"]"), "section.axes must be a list of two coordinates (got 1 value)"),
+            (p.replace("q3 = 0.0, p3 = 0.05", "q3 = 0.0"), "section.fixed must give p3 (every coordinate"),
+            (p.replace("q3 = 0.0, p3 = 0.05", "q3 = 0.0, p3 = 0.0, q2 = 0.1"), "section.fixed.q2 is not free to fix"),
+            (p.replace("q3 = 0.0, p3 = 0.05", "q3 = 0.0, p3 = nan"), "section.fixed.p3 must be a finite number"),
+            (p.replace("q3 = 0.0, p3 = 0.05", "q3 = 0.0, p3 = 0.0, x = 1"), "unknown field 'x' in [section.fixed]"),
+            (p.replace("p2 = [-0.4, 0.4]", "p2 = [-0.4, 0.4]\nq3 = [0, 1]"), "grid.q3 bounds no axis (the section's axes are q2, p2)"),
+            (p.replace("q2 = [-0.4, 0.4]\n", ""), "grid.q2 is required for a polynomial system"),
+            (p.replace("q2 = [-0.4, 0.4]", "q2 = [0.4, -0.4]"), "grid.q2 must have lo < hi"),
+            (p.replace("mode = \"full\"", "mode = \"fast-pss\""), "fast PSS runs in 2 degrees of freedom only (system.dof = 3: an orbit's crossings lie in a 4-dimensional section"),
+            (p.replace("energy = 0.1", "energy = -1"), "grid: no cell's centre lies on the section at energy -1"),
+            (GOOD.replace("energy = 0.125", "energy = 0.125\ndof = 2"), "system.dof is for kind = \"polynomial\""),
+            (GOOD.replace("[grid]", "[section]\nplane = \"q2\"\n[grid]"), "section: the henon-heiles system runs on q1 = 0 with axes q2, p2"),
+            (GOOD.replace("mode = \"full\"", "mode = \"full\"\nq1 = [0, 1]"), "grid.q1 bounds no axis (the section's axes are q2, p2)"),
+        ];
+        for (text, want) in cases {
+            let msg = usage_message(parse(&text, false));
+            assert!(msg.starts_with(want), "{msg}\nwanted: {want}");
+            assert!(!msg.contains('\n'), "{msg}");
         }
     }
 
@@ -1428,7 +1836,7 @@ t_final = [1e3]
             ),
             (
                 GOOD.replace("mode = \"full\"", "mode = \"full\"\nfoo = 1"),
-                "unknown field 'foo' in [grid] (allowed: cells, tile, mode, q2, p2, order, order_seed)",
+                "unknown field 'foo' in [grid] (allowed: cells, tile, mode, q1, q2, q3, p1, p2, p3, order, order_seed)",
             ),
             (
                 GOOD.replace("energy = 0.125", "energy = nan"),

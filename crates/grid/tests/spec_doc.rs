@@ -231,17 +231,44 @@ fn the_example_specs_parse() {
     }
     // The first example is the complete one: it sets every key of every table, but for
     // `sweep.energy` and `sweep.mode`, which replace `system.energy` and `grid.mode` (a spec
-    // gives one of each two).
+    // gives one of each two), and the keys of polynomial systems, which the example of
+    // [section] sets.
     let complete = &toml[0].source;
     assert!(!complete["system"]["energy"].is_null());
     assert!(!complete["grid"]["mode"].is_null());
+    let polynomial = toml
+        .iter()
+        .find(|j| j.source["system"]["kind"] == "polynomial")
+        .expect("an example of a polynomial system");
+    for key in ["dof", "potential"] {
+        assert!(!polynomial.source["system"][key].is_null(), "system.{key}");
+    }
+    for key in ["plane", "axes", "fixed"] {
+        assert!(
+            !polynomial.source["section"][key].is_null(),
+            "section.{key}"
+        );
+    }
     for (table, keys) in SCHEMA {
+        if table.starts_with("section") {
+            continue;
+        }
         let t = if table.is_empty() {
             complete
         } else {
             &complete[*table]
         };
-        let replaced = [("sweep", "energy"), ("sweep", "mode")];
+        let replaced = [
+            ("sweep", "energy"),
+            ("sweep", "mode"),
+            ("", "section"),
+            ("system", "dof"),
+            ("system", "potential"),
+            ("grid", "q1"),
+            ("grid", "q3"),
+            ("grid", "p1"),
+            ("grid", "p3"),
+        ];
         for key in keys.iter().filter(|&&k| !replaced.contains(&(*table, k))) {
             assert!(
                 !t[*key].is_null(),

@@ -157,6 +157,29 @@ impl Polynomial {
         Polynomial::from_terms(self.dof, terms)
     }
 
+    /// The same polynomial with q_{a+1} and q_{b+1} exchanged (`a`, `b` count from 0): a
+    /// section on the plane q_{a+1} = 0 runs as one on q1 = 0 of the exchanged system.
+    pub fn swapped(&self, a: usize, b: usize) -> Polynomial {
+        assert!(
+            a < self.dof && b < self.dof,
+            "coordinates of {} dof",
+            self.dof
+        );
+        let terms = self
+            .terms
+            .iter()
+            .map(|t| {
+                let mut powers = t.powers.clone();
+                powers.swap(a, b);
+                Term {
+                    coeff: t.coeff,
+                    powers,
+                }
+            })
+            .collect();
+        Polynomial::from_terms(self.dof, terms)
+    }
+
     /// The value at `q` (`q.len()` = dof), in `T`'s arithmetic.
     pub fn eval<T: Real>(&self, q: &[T]) -> T {
         assert_eq!(q.len(), self.dof, "a point of {} coordinates", self.dof);

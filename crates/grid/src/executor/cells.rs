@@ -1,7 +1,7 @@
 //! A fixed list of cells integrated on the current rayon pool ([`integrate_cells`]).
 
 use super::crossed_cells;
-use super::{drive_feed, initial_point, lanes, outcome, requests_for, tangent_map, CellRun};
+use super::{drive_feed, initial_point, lanes, outcome, requests_for, CellRun};
 use crate::geometry::Grid;
 use crate::ledger::{Mode, Outcome};
 use rayon::prelude::*;
@@ -37,8 +37,8 @@ pub struct OrbitTrace {
     pub crossings: Vec<(u32, u64)>,
 }
 
-impl BatchFeed<2> for CellsFeed<'_> {
-    fn next(&mut self, _all_idle: bool) -> Feed<2> {
+impl<const N: usize> BatchFeed<N> for CellsFeed<'_> {
+    fn next(&mut self, _all_idle: bool) -> Feed<N> {
         let i = self.cursor.fetch_add(1, Ordering::Relaxed);
         match self.cells.get(i) {
             Some(&cell) => {
@@ -48,7 +48,7 @@ impl BatchFeed<2> for CellsFeed<'_> {
             None => Feed::Done,
         }
     }
-    fn finished(&mut self, i: usize, r: OrbitResult<2>) {
+    fn finished(&mut self, i: usize, r: OrbitResult<N>) {
         let visited = crossed_cells(self.grid, &r.crossings);
         let crossings = if self.trace {
             first_crossings(self.grid, &r)
@@ -66,7 +66,7 @@ impl BatchFeed<2> for CellsFeed<'_> {
 /// The compatible cells an orbit crossed, each at its first crossing, with the step it came
 /// at (steps are uniform in time for tangent maps; for adaptive methods, time's share of the
 /// steps).
-fn first_crossings(grid: &Grid, r: &OrbitResult<2>) -> Vec<(u32, u64)> {
+fn first_crossings<const N: usize>(grid: &Grid, r: &OrbitResult<N>) -> Vec<(u32, u64)> {
     let per_time = if r.t_reached > 0.0 {
         r.steps as f64 / r.t_reached
     } else {
@@ -104,15 +104,13 @@ fn integrate_listed(
 ) -> Vec<OrbitTrace> {
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
-    let map = tangent_map(cell_run);
     // A batched driver fills `lanes` orbits at a time; an adaptive one runs one or a few.
-    let per_driver = map.as_ref().map_or_else(
-        || {
-            let c = &cell_run.config;
-            adaptive_orbits_per_thread(&cell_run.run.method, c.tau, c.t_final)
-        },
-        |_| lanes(mode),
-    );
+    let c = &cell_run.config;
+    let per_driver = if cell_run.run.method.is_adaptive() {
+        adaptive_orbits_per_thread(&cell_run.run.method, c.tau, c.t_final)
+    } else {
+        lanes(mode)
+    };
     let cursor = AtomicUsize::new(0);
     let drivers = rayon::current_num_threads().min(cells.len().div_ceil(per_driver));
     let finished: Vec<(usize, OrbitTrace)> = (0..drivers)
@@ -127,7 +125,7 @@ fn integrate_listed(
                 trace,
                 done: Vec::new(),
             };
-            drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
+            drive_feed(grid, cell_run, mode, &requests, false, &mut feed);
             feed.done
         })
         .collect();

@@ -2,7 +2,7 @@
 //! one ledger needs, and each outcome goes to it as its orbit ends.
 
 use super::initial_point;
-use super::{drive, drive_adaptive, integrate_cells, outcome, requests_for, CellRun, Claims};
+use super::{drive_plane, integrate_cells, outcome, requests_for, CellRun, Claims};
 use crate::geometry::Grid;
 use crate::ledger::{Forecast, Ledger, Mode, Outcome};
 use salient_core::batch::{BatchFeed, Feed};
@@ -10,7 +10,6 @@ use salient_core::method::Method;
 use salient_core::orbit::OrbitResult;
 use salient_core::run::adaptive_orbits_per_thread;
 use salient_core::section::{CellLattice, Crossing};
-use salient_core::{HenonHeiles, TangentMap};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, MutexGuard, TryLockError};
 
@@ -490,26 +489,7 @@ fn run_embedded_with(
         failed: AtomicBool::new(false),
         spins: ledger_spins(),
     };
-    let Method::TangentMap(scheme) = &cell_run.run.method else {
-        rayon::broadcast(|_| {
-            let _guard = FailOnPanic(&engine.failed);
-            let mut feed = LedgerFeed {
-                engine: &engine,
-                book: CrossingBook::default(),
-                dry_since: None,
-            };
-            drive_adaptive(
-                grid,
-                cell_run,
-                &requests,
-                engine.forecast.is_some(),
-                &mut feed,
-            );
-        });
-        return finish(shared, &claims);
-    };
-    let ham = HenonHeiles;
-    let map = TangentMap::new(&ham, scheme, cell_run.config.tau);
+    let guided = engine.forecast.is_some();
     rayon::broadcast(|_| {
         let _guard = FailOnPanic(&engine.failed);
         let mut feed = LedgerFeed {
@@ -517,7 +497,7 @@ fn run_embedded_with(
             book: CrossingBook::default(),
             dry_since: None,
         };
-        drive(&map, &cell_run.config, &requests, mode, &mut feed);
+        drive_plane(grid, cell_run, mode, &requests, guided, &mut feed);
     });
     finish(shared, &claims)
 }

@@ -18,17 +18,15 @@ pub use stream::{integrate_stream, tells_crossings, CellSource, Take, Verdict};
 
 use crate::geometry::Grid;
 use crate::ledger::{CellIndicators, Mode, Outcome};
+use crate::surface::Compiled;
 use salient_core::batch::{BatchFeed, Isa};
 use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
 };
-use salient_core::run::{
-    integrate_feed_adaptive_henon_heiles, integrate_feed_henon_heiles, MethodRun,
-};
-use salient_core::section::on_section;
+use salient_core::run::{FeedDrivers, MethodRun};
 use salient_core::section::Crossing;
-use salient_core::{HenonHeiles, TangentMap};
+use salient_core::TangentMap;
 
 /// Orbits advanced together in one batched stepper on the pinned target level, and the unit
 /// in which schedulers size their batches (see [`lanes`] for what runs).
@@ -44,19 +42,6 @@ pub fn lanes(mode: Mode) -> usize {
         Mode::FastPss => LANES,
         Mode::Full => Isa::detect().lanes(),
     }
-}
-
-/// Runs the batched driver with [`lanes`] lanes (the copy compiled in salient-core: every
-/// feed drives it as a `dyn BatchFeed`, a call per orbit or crossing that costs nothing beside
-/// a step).
-fn drive(
-    map: &TangentMap<'_, HenonHeiles>,
-    config: &OrbitConfig,
-    requests: &Requests,
-    mode: Mode,
-    feed: &mut dyn BatchFeed<2>,
-) {
-    integrate_feed_henon_heiles(Isa::detect(), lanes(mode), map, config, requests, feed)
 }
 
 /// How every cell's orbit is integrated.
@@ -83,7 +68,7 @@ impl CellRun {
 }
 
 /// The compatible cells of `crossings`, in crossing order, repeats included.
-fn crossed_cells(grid: &Grid, crossings: &[Crossing<2>]) -> Vec<u32> {
+fn crossed_cells<const N: usize>(grid: &Grid, crossings: &[Crossing<N>]) -> Vec<u32> {
     crossings
         .iter()
         .filter_map(|c| grid.cell_of(c.q[1], c.p[1]))
@@ -93,11 +78,11 @@ fn crossed_cells(grid: &Grid, crossings: &[Crossing<2>]) -> Vec<u32> {
 
 /// The outcome of orbit `r` of `cell`, whose crossings fell in the compatible cells `visited`
 /// (any order, repeats allowed).
-fn outcome(
+fn outcome<const N: usize>(
     cell_run: &CellRun,
     checkpoints: &[u64],
     cell: u32,
-    r: &OrbitResult<2>,
+    r: &OrbitResult<N>,
     mut visited: Vec<u32>,
 ) -> Outcome {
     visited.sort_unstable();
@@ -133,9 +118,9 @@ fn outcome(
         }),
     }
 }
-fn initial_point(grid: &Grid, cell: u32) -> ([f64; 2], [f64; 2]) {
-    let (q2, p2) = grid.centre(cell);
-    on_section(&HenonHeiles, grid.energy, &[q2], &[p2])
+/// The phase-space point `cell`'s orbit starts from.
+fn initial_point<const N: usize>(grid: &Grid, cell: u32) -> ([f64; N], [f64; N]) {
+    grid.start(cell)
         .expect("compatible cells lie on the section")
 }
 
@@ -148,47 +133,65 @@ fn requests_for(cell_run: &CellRun, mode: Mode) -> Requests {
     }
 }
 
-/// The tangent map of a tangent-map method; `None` for the adaptive ones.
-fn tangent_map(cell_run: &CellRun) -> Option<TangentMap<'static, HenonHeiles>> {
-    match &cell_run.run.method {
-        Method::TangentMap(scheme) => {
-            Some(TangentMap::new(&HenonHeiles, scheme, cell_run.config.tau))
-        }
-        _ => None,
-    }
-}
-
-/// Runs `feed` to its end: in the batched stepper with `map`, else in the adaptive driver.
-fn drive_feed(
+/// Runs `feed` to its end on the grid's system: tangent-map methods in the batched stepper
+/// with [`lanes`] lanes, adaptive ones in their driver ([`FeedDrivers`]; `guided`: the feed
+/// follows a forecast, see [`salient_core::run::integrate_feed_adaptive`]). Each driver is a
+/// `dyn BatchFeed`, a call per orbit or crossing that costs nothing beside a step.
+fn drive_feed<F: BatchFeed<2> + BatchFeed<3>>(
     grid: &Grid,
     cell_run: &CellRun,
     mode: Mode,
-    map: Option<&TangentMap<'_, HenonHeiles>>,
     requests: &Requests,
-    feed: &mut dyn BatchFeed<2>,
+    guided: bool,
+    feed: &mut F,
 ) {
-    match map {
-        Some(map) => drive(map, &cell_run.config, requests, mode, feed),
-        None => drive_adaptive(grid, cell_run, requests, false, feed),
+    match grid.surface.compiled() {
+        Compiled::Space(s) => drive_on::<_, 3>(s, grid, cell_run, mode, requests, guided, feed),
+        _ => drive_plane(grid, cell_run, mode, requests, guided, feed),
     }
 }
 
-/// The adaptive methods' driver over a [`BatchFeed`]: orbits in SIMD lanes or one at a time
-/// ([`salient_core::run::feed_orbits_per_thread`]; `guided`: the feed follows a forecast),
-/// each crossing reported as it is located, abandonment polled every few steps.
-fn drive_adaptive(
+/// [`drive_feed`] on a system of 2 degrees of freedom, the only ones fast PSS runs in.
+fn drive_plane(
     grid: &Grid,
     cell_run: &CellRun,
+    mode: Mode,
     requests: &Requests,
     guided: bool,
     feed: &mut dyn BatchFeed<2>,
 ) {
-    integrate_feed_adaptive_henon_heiles(
-        &cell_run.run,
-        grid.energy,
-        &cell_run.config,
-        requests,
-        guided,
-        feed,
-    );
+    match grid.surface.compiled() {
+        Compiled::HenonHeiles(h) => drive_on(h, grid, cell_run, mode, requests, guided, feed),
+        Compiled::Plane(s) => drive_on(s, grid, cell_run, mode, requests, guided, feed),
+        Compiled::Space(_) => {
+            panic!("a 3-dof system has no 2-dof driver (the spec refuses fast PSS in 3 dof)")
+        }
+    }
+}
+
+/// [`drive_feed`] on `system`.
+fn drive_on<S: FeedDrivers<N>, const N: usize>(
+    system: &S,
+    grid: &Grid,
+    cell_run: &CellRun,
+    mode: Mode,
+    requests: &Requests,
+    guided: bool,
+    feed: &mut dyn BatchFeed<N>,
+) {
+    let config = &cell_run.config;
+    match &cell_run.run.method {
+        Method::TangentMap(scheme) => {
+            let map = TangentMap::new(system, scheme, config.tau);
+            S::integrate_feed(Isa::detect(), lanes(mode), &map, config, requests, feed)
+        }
+        _ => system.integrate_feed_adaptive(
+            &cell_run.run,
+            grid.energy,
+            config,
+            requests,
+            guided,
+            feed,
+        ),
+    }
 }

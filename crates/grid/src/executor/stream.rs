@@ -1,7 +1,7 @@
 //! A worker's stream of leased cells ([`integrate_stream`]): lanes take the next leased cell
 //! the claims let go, whatever lease it came in.
 
-use super::{crossed_cells, drive_feed, initial_point, outcome, requests_for, tangent_map};
+use super::{crossed_cells, drive_feed, initial_point, outcome, requests_for};
 use super::{CellRun, Claims, LocalLedger};
 
 use crate::geometry::Grid;
@@ -90,7 +90,6 @@ pub fn integrate_stream(
 ) {
     let requests = requests_for(cell_run, mode);
     let checkpoints = cell_run.checkpoint_steps();
-    let map = tangent_map(cell_run);
     rayon::broadcast(|_| {
         let mut feed = StreamFeed {
             grid,
@@ -108,7 +107,7 @@ pub fn integrate_stream(
             fresh: Vec::new(),
             seen: 0,
         };
-        drive_feed(grid, cell_run, mode, map.as_ref(), &requests, &mut feed);
+        drive_feed(grid, cell_run, mode, &requests, false, &mut feed);
     });
 }
 
@@ -144,8 +143,8 @@ impl StreamFeed<'_> {
     }
 }
 
-impl BatchFeed<2> for StreamFeed<'_> {
-    fn next(&mut self, all_idle: bool) -> Feed<2> {
+impl<const N: usize> BatchFeed<N> for StreamFeed<'_> {
+    fn next(&mut self, all_idle: bool) -> Feed<N> {
         let (claims, grid) = (self.claims, self.grid);
         // Dropped cells are left without an outcome: the coordinator leases them again if it
         // still needs them.
@@ -165,7 +164,7 @@ impl BatchFeed<2> for StreamFeed<'_> {
             Take::Done => Feed::Done,
         }
     }
-    fn finished(&mut self, id: usize, r: OrbitResult<2>) {
+    fn finished(&mut self, id: usize, r: OrbitResult<N>) {
         let cell = id as u32;
         self.claims.set_running(cell, false);
         self.insisted.retain(|&e| e != id);
@@ -178,7 +177,7 @@ impl BatchFeed<2> for StreamFeed<'_> {
     fn books_by_cell(&self) -> Option<CellLattice> {
         Some(self.grid.lattice())
     }
-    fn on_crossing(&mut self, id: usize, c: &Crossing<2>) {
+    fn on_crossing(&mut self, id: usize, c: &Crossing<N>) {
         if let Some(to) = self.grid.cell_of(c.q[1], c.p[1]) {
             // Asked first: the frontier's orbit claims what it crosses.
             let tell = !self.said_by.is_empty() && self.claims.worth_telling(id as u32, to);
