@@ -5,6 +5,7 @@
 
 use crate::real::Real;
 
+mod dense;
 mod program;
 mod system;
 

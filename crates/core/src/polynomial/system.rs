@@ -2,6 +2,7 @@
 //! for derived once, exactly, and compiled ([`Program`]); the Taylor recursion's Cauchy
 //! products planned from the same polynomials.
 
+use super::dense::VectorAndMatrix;
 use super::program::{Factor, Monomials, Program};
 use super::Polynomial;
 use crate::hamiltonian::{DerivativeBounds, Hamiltonian, KickTerms};
@@ -26,6 +27,10 @@ pub struct PolynomialSystem<const N: usize> {
     third: Program,
     /// Bounds of the same, term by term (see [`Hamiltonian::derivative_bounds`]).
     bounds: [Vec<Polynomial>; 4],
+    /// A cubic potential's kick and corrector terms as dense rows ([`super::dense`]) in 2
+    /// degrees of freedom. In 3 the rows span 10 and 20 monomials, and a 3-dof map runs no
+    /// faster with them (dense kick and corrector, or the kick alone) than with the programs.
+    plane_cubic: Option<(VectorAndMatrix<2, 6, 5>, VectorAndMatrix<2, 10, 5>)>,
     taylor: TaylorPlan,
 }
 
@@ -51,7 +56,16 @@ impl<const N: usize> PolynomialSystem<N> {
             .iter()
             .flat_map(|g| (0..N).map(|j| g.derivative(j)))
             .collect();
+        let cubic = potential.degree() <= 3;
         PolynomialSystem {
+            plane_cubic: (N == 2 && cubic)
+                .then(|| {
+                    Some((
+                        VectorAndMatrix::new(&grad, &hessian)?,
+                        VectorAndMatrix::new(&k_grad, &k_hessian)?,
+                    ))
+                })
+                .flatten(),
             value: Program::new(N, [&potential]),
             grad: Program::new(N, &grad),
             hessian: Program::new(N, &hessian),
@@ -83,6 +97,23 @@ impl<const N: usize> PolynomialSystem<N> {
         });
         (v, m)
     }
+}
+
+/// A vector and matrix of M degrees of freedom as those of N, where M = N (the callers check).
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn widen<T: Real, const M: usize, const N: usize>(
+    (v, m): ([T; M], [[T; M]; M]),
+) -> ([T; N], [[T; N]; N]) {
+    let mut force = [T::splat(0.0); N];
+    let mut matrix = [[T::splat(0.0); N]; N];
+    for i in 0..N {
+        force[i] = v[i];
+        for j in 0..N {
+            matrix[i][j] = m[i][j];
+        }
+    }
+    (force, matrix)
 }
 
 /// A bound over the ball |q| ≤ r of the Euclidean norm of the vector the polynomials form (and
@@ -157,14 +188,32 @@ impl<const N: usize> Hamiltonian<N> for PolynomialSystem<N> {
         Self::vector_and_matrix(&self.corrector, q).1
     }
 
-    /// −b∇V + c∇K and −b D²V + c D²K, each pair from one program.
+    /// −b∇V + c∇K and −b D²V + c D²K, each pair from one program (dense rows for a cubic
+    /// potential in 2 dof).
     #[inline(always)]
     fn kick_terms<T: Real>(&self, q: &[T; N], b: Option<T>, c: Option<T>) -> KickTerms<T, N> {
+        if let (2, Some((kick, corrector))) = (N, &self.plane_cubic) {
+            let q: &[T; 2] = q[..].try_into().expect("N = 2");
+            let t = KickTerms::compose(
+                b,
+                #[inline(always)]
+                || kick.eval(q),
+                c,
+                #[inline(always)]
+                || corrector.eval(q),
+            );
+            let (force, matrix) = widen((t.force, t.matrix));
+            return KickTerms { force, matrix };
+        }
+        // The programs index their point at run time, so they read a copy: indexing the
+        // caller's own array would keep the whole step's state in memory (copied in and out
+        // at every step) even where the dense branch runs.
+        let q = *q;
         KickTerms::compose(
             b,
-            || Self::vector_and_matrix(&self.kick, q),
+            || Self::vector_and_matrix(&self.kick, &q),
             c,
-            || Self::vector_and_matrix(&self.corrector, q),
+            || Self::vector_and_matrix(&self.corrector, &q),
         )
     }
 
