@@ -152,6 +152,8 @@ t_final = [300]
     let run = std::fs::read_to_string(run_dirs(&d.join("plane-emb"))[0].join("run.json")).unwrap();
     let run: serde_json::Value = serde_json::from_str(&run).unwrap();
     assert_eq!(run["bounds"]["q1"], serde_json::json!([-0.6, 0.6]), "{run}");
+    let csv = std::fs::read_to_string(run_dirs(&d.join("plane-emb"))[0].join("cells.csv")).unwrap();
+    assert!(csv.starts_with("i,j,q1,p1,sali,"), "{}", &csv[..40]);
     let svg = std::fs::read_to_string(run_dirs(&d.join("plane-emb"))[0].join("map.svg")).unwrap();
     assert!(
         svg.contains("q₁") && svg.contains("p₁"),

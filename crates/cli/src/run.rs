@@ -697,7 +697,9 @@ fn write_cells_csv(r: &RunResult, path: &Path) -> CliResult<()> {
         .map(|chunk| csv_rows(r, &text, &endings, chunk))
         .collect();
     let mut csv = String::with_capacity(pieces.iter().map(String::len).sum::<usize>() + 64);
-    csv.push_str("i,j,q2,p2,sali,class,status,label_source,t_end");
+    // The centres' columns are named after the section's axes (q2, p2 for Hénon–Heiles).
+    let [x, y] = g.surface.axis_names();
+    csv.push_str(&format!("i,j,{x},{y},sali,class,status,label_source,t_end"));
     if r.indicators {
         for (name, _) in INDICATORS {
             csv.push(',');
