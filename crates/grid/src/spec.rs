@@ -11,7 +11,7 @@ use crate::geometry::{Grid, ScanOrder};
 use crate::surface::{Coordinate, SectionSpec, Surface, SystemSpec};
 use salient_core::adaptive::Protocol;
 use salient_core::orbit::{Deviation, OrbitConfig, Thresholds};
-use salient_core::run::MethodRun;
+use salient_core::run::{MethodRun, GRID_DOFS};
 use salient_core::Method;
 use serde::Serialize;
 use serde_json::{Map, Value};
@@ -843,7 +843,7 @@ fn surface_of(raw: &RawSpec) -> SpecResult<Arc<Surface>> {
         }
         "polynomial" => {
             let dof = match sys.dof {
-                Some(d @ 2..=3) => d as usize,
+                Some(d) if GRID_DOFS.iter().any(|&n| n as i128 == d) => d as usize,
                 Some(d) => {
                     return Err(usage(format!(
                         "system.dof must be 2 or 3 for a grid (got {d}; longer chains run as single orbits: salient orbit --potential … --dof N)"
