@@ -37,6 +37,60 @@ fn henon_heiles_as_text_gives_the_built_in_orbits() {
     }
 }
 
+/// The FPU-β chain by name: an 8-particle orbit with the first normal mode excited keeps its
+/// energy, and orbit.json records the potential it expanded to.
+#[test]
+fn a_named_fpu_beta_chain_runs_by_name() {
+    // q_i = A sin(iπ/9), the first normal mode of 8 particles with fixed ends.
+    let q: Vec<String> = (1..=8)
+        .map(|i| format!("{:.6}", 0.3 * (i as f64 * std::f64::consts::PI / 9.0).sin()))
+        .collect();
+    let v = orbit_json(&[
+        "--system",
+        "fpu-beta",
+        "--beta",
+        "1.5",
+        "--dof",
+        "8",
+        "--q",
+        &q.join(","),
+        "--p",
+        "0,0,0,0,0,0,0,0",
+        "--method",
+        "tm-sbab2c",
+        "--tau",
+        "0.05",
+    ]);
+    assert_eq!(v["dof"], 8);
+    let potential = v["potential"].as_str().unwrap();
+    assert!(
+        potential.starts_with("(q1 - 0)^2/2 + (1.5)*(q1 - 0)^4/4 + (q2 - q1)^2/2"),
+        "{potential}"
+    );
+    assert!(
+        v["energy_error_max"].as_f64().unwrap() < 1e-5,
+        "{}",
+        v["energy_error_max"]
+    );
+    let run = salient(&[
+        "orbit",
+        "--system",
+        "fpu-beta",
+        "--dof",
+        "8",
+        "--q",
+        &q.join(","),
+        "--p",
+        "0,0,0,0,0,0,0,0",
+        "--method",
+        "tm-sbab2c",
+        "--t-final",
+        "10",
+    ]);
+    assert_eq!(run.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&run.stderr).contains("--system fpu-beta needs --beta"));
+}
+
 /// Three coupled oscillators from a whole initial point: six GALIs, the energy from the point,
 /// and crossings.csv with the section's four coordinates and p1.
 #[test]

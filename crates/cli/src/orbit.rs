@@ -6,6 +6,7 @@ use crate::usage::{finite, positive, runtime, CliError, CliResult};
 use clap::{Args, ValueEnum};
 use salient_core::adaptive::Protocol as AdaptiveProtocol;
 use salient_core::orbit::{OrbitConfig, OrbitResult, Requests, Thresholds};
+use salient_core::polynomial::named::fpu_beta;
 use salient_core::polynomial::{Polynomial, PolynomialSystem};
 use salient_core::run::{run_henon_heiles, MethodRun, PolynomialRun, Vectors, POLYNOMIAL_DOFS};
 use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method};
@@ -39,8 +40,16 @@ pub enum DeviationKind {
     Random,
 }
 
+/// The classic systems `--system` names.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum NamedSystem {
+    /// The FPU-β chain with fixed ends: --dof particles, quartic coupling --beta.
+    FpuBeta,
+}
+
 #[derive(Args, Debug)]
 #[command(allow_negative_numbers = true)]
+#[command(group(clap::ArgGroup::new("polynomial_system").args(["potential", "system"])))]
 pub struct OrbitArgs {
     /// q2 of the initial condition on the section q1 = 0 (p1 > 0 follows from the energy);
     /// systems of 2 degrees of freedom.
@@ -74,8 +83,14 @@ pub struct OrbitArgs {
     /// [default: Hénon–Heiles].
     #[arg(long)]
     potential: Option<String>,
-    /// Degrees of freedom N of --potential: 2, 3 or 8.
-    #[arg(long, default_value_t = 2, requires = "potential")]
+    /// A classic system by name, expanded to its potential (see docs/methods.md).
+    #[arg(long, value_enum)]
+    system: Option<NamedSystem>,
+    /// The quartic coupling β of --system fpu-beta.
+    #[arg(long, requires = "system")]
+    beta: Option<f64>,
+    /// Degrees of freedom N of --potential or --system: 2, 3 or 8.
+    #[arg(long, default_value_t = 2, requires = "polynomial_system")]
     dof: usize,
     /// Integration method, e.g. tm-sbab2c, tm-srkn14a.
     #[arg(long)]
@@ -252,9 +267,20 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
     })
 }
 
-/// The potential of --potential in --dof coordinates, with its text.
+/// The potential of --potential or --system in --dof coordinates, with its text.
 fn potential_of(a: &OrbitArgs) -> CliResult<Option<(String, Polynomial)>> {
-    let Some(text) = &a.potential else {
+    let named = match a.system {
+        Some(NamedSystem::FpuBeta) => {
+            let beta = a.beta.ok_or_else(|| {
+                CliError::Usage(
+                    "--system fpu-beta needs --beta, the quartic coupling (e.g. 1.5)".into(),
+                )
+            })?;
+            Some(fpu_beta(a.dof, finite("--beta", beta)?))
+        }
+        None => None,
+    };
+    let Some(text) = named.as_ref().or(a.potential.as_ref()) else {
         return Ok(None);
     };
     if !POLYNOMIAL_DOFS.contains(&a.dof) {

@@ -9,7 +9,7 @@ use salient_core::adaptive::Protocol;
 use salient_core::dd::DoubleDouble;
 use salient_core::dop853::{Dop853, Dop853Config};
 use salient_core::orbit::{initial_vectors, integrate, Class, OrbitConfig, OrbitResult, Requests};
-use salient_core::polynomial::{Polynomial, PolynomialSystem};
+use salient_core::polynomial::{named, Polynomial, PolynomialSystem};
 use salient_core::real::Real;
 use salient_core::run::{run_orbit, MethodRun, PolynomialRun, Vectors};
 use salient_core::taylor::{Series, Taylor, TaylorSeries, P_MAX};
@@ -356,6 +356,13 @@ fn fpu_beta_8() -> PolynomialSystem<8> {
         })
         .collect();
     PolynomialSystem::new(Polynomial::parse(&text.join(" + "), 8).unwrap())
+}
+
+/// The chain by name ([`named::fpu_beta`]) is the chain written out by hand.
+#[test]
+fn the_named_fpu_beta_chain_is_the_written_one() {
+    let named = Polynomial::parse(&named::fpu_beta(8, 1.0), 8).unwrap();
+    assert_eq!(&named, fpu_beta_8().potential_polynomial());
 }
 
 /// The 8-particle FPU-β chain: the tangent map of every scheme is the Jacobian of its step and

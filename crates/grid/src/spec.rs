@@ -11,6 +11,7 @@ use crate::geometry::{Grid, ScanOrder};
 use crate::surface::{Coordinate, SectionSpec, Surface, SystemSpec};
 use salient_core::adaptive::Protocol;
 use salient_core::orbit::{Deviation, OrbitConfig, Thresholds};
+use salient_core::polynomial::named::fpu_beta;
 use salient_core::run::{MethodRun, GRID_DOFS};
 use salient_core::Method;
 use serde::Serialize;
@@ -48,7 +49,7 @@ pub const SCHEMA: &[(&str, &[&str])] = &[
             "classify",
         ],
     ),
-    ("system", &["kind", "energy", "dof", "potential"]),
+    ("system", &["kind", "energy", "dof", "potential", "beta"]),
     ("section", &["plane", "axes", "fixed"]),
     ("section.fixed", &COORDINATES),
     (
@@ -243,6 +244,7 @@ struct RawSystem {
     energy: Option<f64>,
     dof: Option<i128>,
     potential: Option<String>,
+    beta: Option<f64>,
 }
 
 #[derive(Serialize)]
@@ -584,6 +586,7 @@ fn read_raw(v: &Value) -> SpecResult<RawSpec> {
             energy: system.opt("energy", number)?,
             dof: system.opt("dof", integer)?,
             potential: system.opt("potential", string)?,
+            beta: system.opt("beta", number)?,
         },
         section: match section {
             Some(t) => Some(RawSection {
@@ -827,40 +830,65 @@ fn energies(raw: &RawSpec, system: &SystemSpec) -> SpecResult<Vec<f64>> {
 /// The system and section of the spec (`[system]`, `[section]`), compiled.
 fn surface_of(raw: &RawSpec) -> SpecResult<Arc<Surface>> {
     let sys = &raw.system;
-    let system = match sys.kind.as_str() {
-        "henon-heiles" => {
-            for (field, given) in [
-                ("dof", sys.dof.is_some()),
-                ("potential", sys.potential.is_some()),
-            ] {
-                if given {
-                    return Err(usage(format!(
-                        "system.{field} is for kind = \"polynomial\" (the henon-heiles system has its own)"
-                    )));
-                }
-            }
-            SystemSpec::HenonHeiles
+    // Which of dof, potential and beta each kind takes.
+    let takes: &[&str] = match sys.kind.as_str() {
+        "henon-heiles" => &[],
+        "polynomial" => &["dof", "potential"],
+        "fpu-beta" => &["dof", "beta"],
+        other => {
+            return Err(usage(format!(
+            "system.kind must be \"henon-heiles\", \"polynomial\" or \"fpu-beta\" (got {other:?})"
+        )))
         }
-        "polynomial" => {
-            let dof = match sys.dof {
-                Some(d) if GRID_DOFS.iter().any(|&n| n as i128 == d) => d as usize,
-                Some(d) => {
-                    return Err(usage(format!(
-                        "system.dof must be 2 or 3 for a grid (got {d}; longer chains run as single orbits: salient orbit --potential … --dof N)"
-                    )))
+    };
+    for (field, given) in [
+        ("dof", sys.dof.is_some()),
+        ("potential", sys.potential.is_some()),
+        ("beta", sys.beta.is_some()),
+    ] {
+        if given && !takes.contains(&field) {
+            return Err(usage(format!(
+                "system.{field} is not a key of kind = {:?} (it takes {})",
+                sys.kind,
+                if takes.is_empty() {
+                    "only energy".to_string()
+                } else {
+                    takes.join(" and ")
                 }
-                None => return Err(usage("system.dof is required with kind = \"polynomial\" (2 or 3)")),
-            };
+            )));
+        }
+    }
+    let dof = || {
+        match sys.dof {
+        Some(d) if GRID_DOFS.iter().any(|&n| n as i128 == d) => Ok(d as usize),
+        Some(d) => Err(usage(format!(
+            "system.dof must be 2 or 3 for a grid (got {d}; longer chains run as single orbits: salient orbit --potential … --dof N)"
+        ))),
+        None => Err(usage(format!(
+            "system.dof is required with kind = {:?} (2 or 3)",
+            sys.kind
+        ))),
+    }
+    };
+    let system = match sys.kind.as_str() {
+        "polynomial" => {
+            let dof = dof()?;
             let potential = sys.potential.clone().ok_or_else(|| {
                 usage("system.potential is required with kind = \"polynomial\" (a polynomial in q1…qN, e.g. \"(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3\")")
             })?;
             SystemSpec::Polynomial { dof, potential }
         }
-        other => {
-            return Err(usage(format!(
-                "system.kind must be \"henon-heiles\" or \"polynomial\" (got {other:?})"
-            )))
+        "fpu-beta" => {
+            let dof = dof()?;
+            let beta = sys.beta.ok_or_else(|| {
+                usage("system.beta is required with kind = \"fpu-beta\" (the quartic coupling, e.g. 1.5)")
+            })?;
+            SystemSpec::Polynomial {
+                dof,
+                potential: fpu_beta(dof, beta),
+            }
         }
+        _ => SystemSpec::HenonHeiles,
     };
     let section = section_of(raw.section.as_ref(), system.dof())?;
     if system == SystemSpec::HenonHeiles && section != SectionSpec::henon_heiles() {
@@ -1384,6 +1412,24 @@ tau = [0.5]
 t_final = [100]
 "#;
 
+    const GOOD_FPU: &str = r#"
+name = "fpu"
+[system]
+kind = "fpu-beta"
+dof = 2
+beta = 1.5
+energy = 0.1
+[grid]
+cells = [20, 20]
+mode = "full"
+q2 = [-0.3, 0.3]
+p2 = [-0.4, 0.4]
+[sweep]
+method = ["tm-sbab2c"]
+tau = [0.5]
+t_final = [100]
+"#;
+
     const MINIMAL: &str = r#"
 [system]
 kind = "henon-heiles"
@@ -1676,11 +1722,25 @@ t_final = [1e3]
         assert_eq!(j.mode(0), Mode::FastPss);
     }
 
+    /// The FPU-β chain by name is the polynomial system of its expanded potential.
+    #[test]
+    fn a_named_system_is_its_potential() {
+        let named = parse(GOOD_FPU, false).unwrap();
+        let text = fpu_beta(2, 1.5);
+        let written = GOOD_FPU
+            .replace("kind = \"fpu-beta\"", "kind = \"polynomial\"")
+            .replace("beta = 1.5", &format!("potential = \"{text}\""));
+        let written = parse(&written, false).unwrap();
+        assert_eq!(named.surface, written.surface);
+        assert_eq!(named.grid(0).canonical(), written.grid(0).canonical());
+        assert!(named.grid(0).compatible_count() > 100);
+    }
+
     #[test]
     fn bad_systems_and_sections_name_their_field() {
         let p = GOOD_POLYNOMIAL;
         let cases = [
-            (p.replace("\"polynomial\"", "\"quartic\""), "system.kind must be \"henon-heiles\" or \"polynomial\" (got \"quartic\")"),
+            (p.replace("\"polynomial\"", "\"quartic\""), "system.kind must be \"henon-heiles\", \"polynomial\" or \"fpu-beta\" (got \"quartic\")"),
             (p.replace("dof = 3", "dof = 8"), "system.dof must be 2 or 3 for a grid (got 8;"),
             (p.replace("dof = 3\n", ""), "system.dof is required with kind = \"polynomial\""),
             (p.replace("potential = \"(q1^2 + q2^2 + q3^2)/2 + q1^2*q2 + q1^2*q3\"\n", ""), "system.potential is required with kind = \"polynomial\""),
@@ -1700,7 +1760,10 @@ t_final = [1e3]
             (p.replace("q2 = [-0.4, 0.4]", "q2 = [0.4, -0.4]"), "grid.q2 must have lo < hi"),
             (p.replace("mode = \"full\"", "mode = \"fast-pss\""), "fast PSS runs in 2 degrees of freedom only (system.dof = 3: an orbit's crossings lie in a 4-dimensional section"),
             (p.replace("energy = 0.1", "energy = -1"), "grid: no cell's centre lies on the section at energy -1"),
-            (GOOD.replace("energy = 0.125", "energy = 0.125\ndof = 2"), "system.dof is for kind = \"polynomial\""),
+            (GOOD.replace("energy = 0.125", "energy = 0.125\ndof = 2"), "system.dof is not a key of kind = \"henon-heiles\" (it takes only energy)"),
+            (p.replace("dof = 3", "dof = 3\nbeta = 1"), "system.beta is not a key of kind = \"polynomial\" (it takes dof and potential)"),
+            (GOOD_FPU.replace("beta = 1.5\n", ""), "system.beta is required with kind = \"fpu-beta\""),
+            (GOOD_FPU.replace("beta = 1.5", "beta = 1.5\npotential = \"q1\""), "system.potential is not a key of kind = \"fpu-beta\" (it takes dof and beta)"),
             (GOOD.replace("[grid]", "[section]\nplane = \"q2\"\n[grid]"), "section: the henon-heiles system runs on q1 = 0 with axes q2, p2"),
             (GOOD.replace("mode = \"full\"", "mode = \"full\"\nq1 = [0, 1]"), "grid.q1 bounds no axis (the section's axes are q2, p2)"),
         ];

@@ -264,6 +264,7 @@ fn the_example_specs_parse() {
             ("", "section"),
             ("system", "dof"),
             ("system", "potential"),
+            ("system", "beta"),
             ("grid", "q1"),
             ("grid", "q3"),
             ("grid", "p1"),

@@ -6,6 +6,7 @@
 use crate::real::Real;
 
 mod dense;
+pub mod named;
 mod program;
 mod system;
 
