@@ -1,7 +1,7 @@
 //! A coordinator, workers and client commands as real processes on loopback, for the
 //! distributed-mode tests.
 
-use crate::{run_dirs, salient_path};
+use crate::{json_stdout, run_dirs, salient, salient_path};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -195,4 +195,31 @@ pub fn wait_results(url: &str, job: u64, out: &Path) -> serde_json::Value {
         ],
         url,
     ))
+}
+
+/// Submits `spec` with `--wait` (results into `d/dist`), runs it embedded (into `d/emb`), checks
+/// that the two wrote the same files, and gives both `--json` summaries.
+pub fn submit_and_run(d: &Path, spec: &str, url: &str) -> (serde_json::Value, serde_json::Value) {
+    let (dist, emb) = (d.join("dist"), d.join("emb"));
+    let submitted = [
+        "submit",
+        spec,
+        "--wait",
+        "--json",
+        "--out",
+        dist.to_str().unwrap(),
+    ];
+    let summary = json_stdout(&client(&submitted, url));
+    let run = [
+        "run",
+        spec,
+        "--threads",
+        "2",
+        "--json",
+        "--out",
+        emb.to_str().unwrap(),
+    ];
+    let embedded = json_stdout(&salient(&run));
+    assert_same_outputs(&emb, &dist);
+    (summary, embedded)
 }

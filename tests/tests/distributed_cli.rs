@@ -3,40 +3,13 @@
 //! byte-identical to `salient run`'s, also across a coordinator killed and restarted mid-job.
 
 use salient_tests::cluster::{
-    assert_same_outputs, client, coordinator, coordinator_with, field, spawn, wait_for,
-    wait_results, worker, Proc, TOKEN,
+    assert_same_outputs, client, coordinator, coordinator_with, field, spawn, submit_and_run,
+    wait_for, wait_results, worker, Proc, TOKEN,
 };
 use salient_tests::{json_stdout, run_embedded, salient, salient_path, write_spec};
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-
-/// Submits `spec` with `--wait` (results into `d/dist`), runs it embedded (into `d/emb`), checks
-/// that the two wrote the same files, and gives both `--json` summaries.
-fn submit_and_run(d: &Path, spec: &str, url: &str) -> (serde_json::Value, serde_json::Value) {
-    let (dist, emb) = (d.join("dist"), d.join("emb"));
-    let submitted = [
-        "submit",
-        spec,
-        "--wait",
-        "--json",
-        "--out",
-        dist.to_str().unwrap(),
-    ];
-    let summary = json_stdout(&client(&submitted, url));
-    let run = [
-        "run",
-        spec,
-        "--threads",
-        "2",
-        "--json",
-        "--out",
-        emb.to_str().unwrap(),
-    ];
-    let embedded = json_stdout(&salient(&run));
-    assert_same_outputs(&emb, &dist);
-    (summary, embedded)
-}
 
 /// Orbits of a million steps and more tell the coordinator what they cross while they run
 /// (the coordinator counts those cells in its "run done" line); the results stay those of

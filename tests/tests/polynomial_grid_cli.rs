@@ -2,8 +2,8 @@
 //! the built-in, a 3-dof full-mode map and a 2-dof section on another plane run by a
 //! coordinator and workers as by `salient run`, and bad systems and sections refused.
 
-use salient_tests::cluster::{assert_same_outputs, client, coordinator, worker, Proc};
-use salient_tests::{json_stdout, run_dirs, run_embedded, salient, write_spec};
+use salient_tests::cluster::{coordinator, submit_and_run, worker, Proc};
+use salient_tests::{run_dirs, run_embedded, salient, write_spec};
 use std::path::Path;
 
 const HENON_HEILES: &str = "(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3";
@@ -132,35 +132,27 @@ t_final = [300]
     let (_c, url) = coordinator(d, "127.0.0.1:0", "coordinator.log");
     let _w: Vec<Proc> = (1..=2).map(|n| worker(d, &url, n)).collect();
     for (name, spec) in [("space", &space), ("plane", &plane)] {
-        let (dist, emb) = (
-            d.join(format!("{name}-dist")),
-            d.join(format!("{name}-emb")),
-        );
-        let submitted = [
-            "submit",
-            spec,
-            "--wait",
-            "--json",
-            "--out",
-            dist.to_str().unwrap(),
-        ];
-        json_stdout(&client(&submitted, &url));
-        run_embedded(spec, &emb);
-        assert_same_outputs(&emb, &dist);
+        let into = d.join(name);
+        std::fs::create_dir(&into).unwrap();
+        submit_and_run(&into, spec, &url);
     }
     // The run's files name the section's axes.
-    let run = std::fs::read_to_string(run_dirs(&d.join("plane-emb"))[0].join("run.json")).unwrap();
+    let run = std::fs::read_to_string(run_dirs(&d.join("plane").join("emb"))[0].join("run.json"))
+        .unwrap();
     let run: serde_json::Value = serde_json::from_str(&run).unwrap();
     assert_eq!(run["bounds"]["q1"], serde_json::json!([-0.6, 0.6]), "{run}");
-    let csv = std::fs::read_to_string(run_dirs(&d.join("plane-emb"))[0].join("cells.csv")).unwrap();
+    let csv = std::fs::read_to_string(run_dirs(&d.join("plane").join("emb"))[0].join("cells.csv"))
+        .unwrap();
     assert!(csv.starts_with("i,j,q1,p1,sali,"), "{}", &csv[..40]);
-    let svg = std::fs::read_to_string(run_dirs(&d.join("plane-emb"))[0].join("map.svg")).unwrap();
+    let svg =
+        std::fs::read_to_string(run_dirs(&d.join("plane").join("emb"))[0].join("map.svg")).unwrap();
     assert!(
         svg.contains("q₁") && svg.contains("p₁"),
         "the map's axes are q₁ and p₁"
     );
     let cells =
-        std::fs::read_to_string(run_dirs(&d.join("space-emb"))[0].join("cells.csv")).unwrap();
+        std::fs::read_to_string(run_dirs(&d.join("space").join("emb"))[0].join("cells.csv"))
+            .unwrap();
     let chaotic_or_regular = cells
         .lines()
         .filter(|l| l.contains(",regular,") || l.contains(",chaotic,"))
