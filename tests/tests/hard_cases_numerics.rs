@@ -17,7 +17,7 @@
 #![allow(clippy::excessive_precision)]
 
 use crate::common::{c1, ic, r1, ENERGY};
-use salient_core::adaptive::Protocol;
+use salient_core::adaptive::driver::Protocol;
 use salient_core::method::Method;
 use salient_core::orbit::{Class, OrbitConfig, OrbitResult, Requests, Status};
 use salient_core::run::{run_henon_heiles, MethodRun, Vectors};

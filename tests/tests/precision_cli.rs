@@ -82,6 +82,121 @@ fn precision_refuses_bad_orbits_and_times() {
     }
 }
 
+/// Hénon–Heiles' potential as text.
+const HH_TEXT: &str = "(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3";
+
+/// The ladder runs on a potential given as text: Hénon–Heiles written out gives, setting by
+/// setting, the built-in's classes and end points to within the methods' own errors, and a
+/// 3-dof system runs from a whole point given by --q and --p.
+#[test]
+fn precision_runs_the_ladder_on_polynomial_systems() {
+    let built_in = json_stdout(&salient(&["precision", "--t-final", "5", "--json"]));
+    let as_text = json_stdout(&salient(&[
+        "precision",
+        "--potential",
+        HH_TEXT,
+        "--orbit",
+        "0.558,0",
+        "--t-final",
+        "5",
+        "--json",
+    ]));
+    assert_eq!(as_text["system"], "polynomial");
+    assert_eq!(as_text["potential"], HH_TEXT);
+    assert_eq!(as_text["orbit"]["q"], built_in["orbit"]["q"]);
+    assert_eq!(as_text["orbit"]["p"], built_in["orbit"]["p"]);
+    let (a, b) = (
+        built_in["rows"].as_array().unwrap(),
+        as_text["rows"].as_array().unwrap(),
+    );
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(b) {
+        for key in [
+            "method", "tau", "delta", "protocol", "order", "class", "status",
+        ] {
+            assert_eq!(x[key], y[key], "{key}: {x} vs {y}");
+        }
+        // The two differ by rounding only; against the reference each keeps its error, down to
+        // the round-off the end point carries after 5 time units.
+        let (ex, ey) = (
+            x["state_error"].as_f64().unwrap(),
+            y["state_error"].as_f64().unwrap(),
+        );
+        assert!((ex - ey).abs() <= 1e-3 * ex.max(ey) + 1e-13, "{x} vs {y}");
+    }
+
+    let space = json_stdout(&salient(&[
+        "precision",
+        "--potential",
+        "(q1^2 + 2*q2^2 + 3*q3^2)/2 + q1^2*q2 + q1^2*q3",
+        "--dof",
+        "3",
+        "--q",
+        "0,0.1,-0.05",
+        "--p",
+        "0.3,0.1,0.2",
+        "--t-final",
+        "5",
+        "--json",
+    ]));
+    assert_eq!(space["dof"], 3);
+    let rows = space["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 62);
+    let energy = space["orbit"]["energy"].as_f64().unwrap();
+    let expected = 0.5 * (0.09 + 0.01 + 0.04) + 0.5 * (2.0 * 0.01 + 3.0 * 0.0025);
+    assert!((energy - expected).abs() < 1e-15, "{energy} vs {expected}");
+    assert_eq!(space["reference"]["q_end"].as_array().unwrap().len(), 3);
+    // A sixth-order scheme at τ = 0.01 is far closer to the reference than a second-order one
+    // at τ = 0.5.
+    let error = |m: &str, tau: f64| {
+        rows.iter()
+            .find(|r| r["method"] == m && r["tau"] == tau)
+            .unwrap()["state_error"]
+            .as_f64()
+            .unwrap()
+    };
+    assert!(error("tm-srkn14a", 0.01) < 1e-3 * error("tm-sbab2", 0.5));
+}
+
+#[test]
+fn precision_refuses_orbits_its_system_does_not_have() {
+    for (args, needle) in [
+        (
+            vec!["precision", "--potential", HH_TEXT, "--orbit", "R1"],
+            "Hénon–Heiles orbits",
+        ),
+        (vec!["precision", "--potential", HH_TEXT], "--orbit Q2,P2"),
+        (
+            vec![
+                "precision",
+                "--potential",
+                "q1^2+q2^2+q3^2",
+                "--dof",
+                "3",
+                "--orbit",
+                "0.1,0",
+            ],
+            "--q and --p",
+        ),
+        (
+            vec!["precision", "--q", "0,0.1", "--p", "0.3"],
+            "--p needs 2",
+        ),
+        (
+            vec!["precision", "--potential", "q1^2 + q3", "--orbit", "0.1,0"],
+            "--potential",
+        ),
+    ] {
+        let out = salient(&args);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
+        assert!(
+            stderr.contains(needle) && stderr.trim().lines().count() == 1,
+            "{args:?}: {stderr}"
+        );
+    }
+}
+
 /// A 20×20 grid at t = 1e3 with a deliberately loose method beside a finer one.
 const SMALL_GRID: &str = r#"
 name = "small"

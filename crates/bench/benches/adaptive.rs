@@ -3,13 +3,14 @@
 //! `polynomial` cases run Hénon–Heiles given as text through the polynomial path.
 
 use salient_bench::Harness;
-use salient_core::dd::DoubleDouble;
-use salient_core::dop853::{rhs, Dop853, Dop853Config};
+use salient_core::adaptive::dop853::{rhs, Dop853, Dop853Config};
+use salient_core::adaptive::taylor::Taylor;
+use salient_core::arith::dd::DoubleDouble;
 use salient_core::orbit::initial_vectors;
-use salient_core::polynomial::{Polynomial, PolynomialSystem};
+use salient_core::phase::Phase;
 use salient_core::section::on_section;
-use salient_core::tangent::Phase;
-use salient_core::taylor::{Taylor, TaylorSeries};
+use salient_core::systems::polynomial::{Polynomial, PolynomialSystem};
+use salient_core::systems::series::TaylorSeries;
 use salient_core::{Deviation, HenonHeiles};
 use std::hint::black_box;
 

@@ -4,10 +4,10 @@
 //! given as text through the polynomial path, beside the built-in's hand-fused formulas.
 
 use salient_bench::Harness;
-use salient_core::batch::{integrate_batch_on, Isa};
 use salient_core::orbit::{integrate, OrbitConfig, Requests};
-use salient_core::polynomial::{Polynomial, PolynomialSystem};
 use salient_core::section::on_section;
+use salient_core::systems::polynomial::{Polynomial, PolynomialSystem};
+use salient_core::tangent_map::batch::{integrate_batch_on, Isa};
 use salient_core::{Hamiltonian, HenonHeiles, Scheme, TangentMap};
 use std::hint::black_box;
 

@@ -1,12 +1,13 @@
 //! Speed against error: every method over a ladder of settings on one orbit, each run compared
 //! with a double-double Taylor reference from the same initial condition (the seed paper's
-//! Table 1 and Fig. 6, as data), on Hénon–Heiles.
+//! Table 1 and Fig. 6, as data), on Hénon–Heiles or any polynomial system.
 
-use salient_core::adaptive::Protocol;
+use crate::system::{OrbitReport, System};
+use salient_core::adaptive::driver::Protocol;
 use salient_core::method::Method;
 use salient_core::orbit::{Class, OrbitConfig, OrbitResult, Requests, Status};
-use salient_core::run::{run_henon_heiles, MethodRun, Vectors};
-use salient_core::scheme::Scheme;
+use salient_core::run::{MethodRun, Vectors};
+use salient_core::tangent_map::scheme::Scheme;
 use std::time::Instant;
 
 /// The renormalisation interval of the adaptive methods' runs (the paper's τ).
@@ -82,32 +83,80 @@ fn config(tau: f64, t_final: f64) -> OrbitConfig {
     c
 }
 
+/// What the ladder keeps of a run: its end point, whatever the system's dimension.
+#[derive(Clone, Debug, PartialEq)]
+pub struct OrbitEnd {
+    pub status: Status,
+    pub steps: u64,
+    pub q_end: Vec<f64>,
+    pub p_end: Vec<f64>,
+    pub energy_error_max: Option<f64>,
+    pub sali: f64,
+    pub class: Option<Class>,
+}
+
+/// [`OrbitEnd`] as the report of [`System::run_orbit`].
+struct EndOf;
+
+impl OrbitReport<OrbitEnd> for EndOf {
+    fn report<const N: usize>(&mut self, r: &OrbitResult<N>) -> OrbitEnd {
+        OrbitEnd {
+            status: r.status,
+            steps: r.steps,
+            q_end: r.q_end.to_vec(),
+            p_end: r.p_end.to_vec(),
+            energy_error_max: r.energy_error_max,
+            sali: r.sali,
+            class: r.class,
+        }
+    }
+}
+
+/// One orbit of `system` from `start` with `run` at renormalisation interval `tau`.
+fn orbit_end(
+    system: &System,
+    run: &MethodRun,
+    (energy, start): (f64, (&[f64], &[f64])),
+    (tau, t_final): (f64, f64),
+    requests: &Requests,
+) -> OrbitEnd {
+    let config = config(tau, t_final);
+    system.run_orbit(
+        run,
+        energy,
+        start,
+        &config,
+        requests,
+        Vectors::Two,
+        &mut EndOf,
+    )
+}
+
 /// The reference run: taylor-dd at δ = 1e-28, free protocol.
-pub fn reference(energy: f64, q: [f64; 2], p: [f64; 2], t_final: f64) -> OrbitResult<2> {
+pub fn reference(system: &System, energy: f64, start: (&[f64], &[f64]), t_final: f64) -> OrbitEnd {
     let run = MethodRun {
         method: Method::TaylorDd,
         delta: Some(REFERENCE_DELTA),
         protocol: Protocol::Free,
     };
-    run_henon_heiles(
+    let requests = Requests::default();
+    orbit_end(
+        system,
         &run,
-        energy,
-        (q, p),
-        &config(ADAPTIVE_TAU, t_final),
-        &Requests::default(),
-        Vectors::Two,
+        (energy, start),
+        (ADAPTIVE_TAU, t_final),
+        &requests,
     )
 }
 
-/// Runs every setting and measures it against `reference`; `progress` sees each row as it
-/// is done.
+/// Runs every setting on `system` from `start` and measures it against `reference`;
+/// `progress` sees each row as it is done.
 pub fn run_ladder(
-    energy: f64,
-    q: [f64; 2],
-    p: [f64; 2],
+    system: &System,
+    (energy, start): (f64, (&[f64], &[f64])),
     t_final: f64,
     ladder: &[Setting],
-    reference: &OrbitResult<2>,
+    reference: &OrbitEnd,
     progress: &mut dyn FnMut(usize, &Row),
 ) -> Vec<Row> {
     let requests = Requests {
@@ -116,17 +165,10 @@ pub fn run_ladder(
     };
     let mut rows = Vec::with_capacity(ladder.len());
     for (i, s) in ladder.iter().enumerate() {
-        let start = Instant::now();
-        let r = run_henon_heiles(
-            &s.run,
-            energy,
-            (q, p),
-            &config(s.tau, t_final),
-            &requests,
-            Vectors::Two,
-        );
-        let wall_s = start.elapsed().as_secs_f64();
-        let state_error = (0..2)
+        let start_time = Instant::now();
+        let r = orbit_end(system, &s.run, (energy, start), (s.tau, t_final), &requests);
+        let wall_s = start_time.elapsed().as_secs_f64();
+        let state_error = (0..r.q_end.len())
             .map(|i| {
                 (r.q_end[i] - reference.q_end[i])
                     .abs()

@@ -20,6 +20,7 @@ mod run;
 #[cfg(feature = "distributed")]
 mod simulate;
 mod spec;
+mod system;
 mod usage;
 
 use clap::{Parser, Subcommand};

@@ -2,14 +2,13 @@
 
 use crate::human::{csv_number, human};
 use crate::output::Staged;
+use crate::system::{OrbitReport, System, SystemArgs};
 use crate::usage::{finite, positive, runtime, CliError, CliResult};
 use clap::{Args, ValueEnum};
-use salient_core::adaptive::Protocol as AdaptiveProtocol;
+use salient_core::adaptive::driver::Protocol as AdaptiveProtocol;
 use salient_core::orbit::{OrbitConfig, OrbitResult, Requests, Thresholds};
-use salient_core::polynomial::named::fpu_beta;
-use salient_core::polynomial::{Polynomial, PolynomialSystem};
-use salient_core::run::{run_henon_heiles, MethodRun, PolynomialRun, Vectors, POLYNOMIAL_DOFS};
-use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method};
+use salient_core::run::{MethodRun, Vectors};
+use salient_core::{Deviation, Method};
 use salient_report::{
     render_lines, render_loglog, render_panels, HLine, Line, LinePlot, LogLogPlot, Panels,
     ReportError,
@@ -40,16 +39,8 @@ pub enum DeviationKind {
     Random,
 }
 
-/// The classic systems `--system` names.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum NamedSystem {
-    /// The FPU-β chain with fixed ends: --dof particles, quartic coupling --beta.
-    FpuBeta,
-}
-
 #[derive(Args, Debug)]
 #[command(allow_negative_numbers = true)]
-#[command(group(clap::ArgGroup::new("polynomial_system").args(["potential", "system"])))]
 pub struct OrbitArgs {
     /// q2 of the initial condition on the section q1 = 0 (p1 > 0 follows from the energy);
     /// systems of 2 degrees of freedom.
@@ -78,20 +69,8 @@ pub struct OrbitArgs {
     /// Energy H of the orbit started on the section [default: 0.125].
     #[arg(long, conflicts_with = "q")]
     energy: Option<f64>,
-    /// The potential V of H = ½|p|² + V(q): a polynomial in q1…qN (numbers, + - * /, integer
-    /// powers with ^ or **, parentheses), e.g. "(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3"
-    /// [default: Hénon–Heiles].
-    #[arg(long)]
-    potential: Option<String>,
-    /// A classic system by name, expanded to its potential (see docs/methods.md).
-    #[arg(long, value_enum)]
-    system: Option<NamedSystem>,
-    /// The quartic coupling β of --system fpu-beta.
-    #[arg(long, requires = "system")]
-    beta: Option<f64>,
-    /// Degrees of freedom N of --potential or --system: 2, 3 or 8.
-    #[arg(long, default_value_t = 2, requires = "polynomial_system")]
-    dof: usize,
+    #[command(flatten)]
+    system: SystemArgs,
     /// Integration method, e.g. tm-sbab2c, tm-srkn14a.
     #[arg(long)]
     method: String,
@@ -142,8 +121,7 @@ pub struct OrbitArgs {
 
 /// A validated orbit request.
 struct OrbitJob {
-    /// The potential given as text (`None`: the built-in Hénon–Heiles).
-    potential: Option<(String, Polynomial)>,
+    system: System,
     method: Method,
     energy: f64,
     /// The tolerance in force (adaptive methods only).
@@ -169,8 +147,8 @@ impl OrbitJob {
 
 fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
     let method = Method::parse(&a.method).map_err(|e| CliError::Usage(format!("--method: {e}")))?;
-    let potential = potential_of(a)?;
-    let (q, p, energy) = start_of(a, potential.as_ref().map(|(_, v)| v))?;
+    let system = a.system.system()?;
+    let (q, p, energy) = start_of(a, &system)?;
     let tau = positive("--tau", a.tau)?;
     if !(a.t_final.is_finite() && a.t_final >= tau) {
         return Err(CliError::Usage(format!(
@@ -253,7 +231,7 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
         },
     };
     Ok(OrbitJob {
-        potential,
+        system,
         method,
         energy,
         delta,
@@ -267,61 +245,14 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
     })
 }
 
-/// The potential of --potential or --system in --dof coordinates, with its text.
-fn potential_of(a: &OrbitArgs) -> CliResult<Option<(String, Polynomial)>> {
-    let named = match a.system {
-        Some(NamedSystem::FpuBeta) => {
-            let beta = a.beta.ok_or_else(|| {
-                CliError::Usage(
-                    "--system fpu-beta needs --beta, the quartic coupling (e.g. 1.5)".into(),
-                )
-            })?;
-            Some(fpu_beta(a.dof, finite("--beta", beta)?))
-        }
-        None => None,
-    };
-    let Some(text) = named.as_ref().or(a.potential.as_ref()) else {
-        return Ok(None);
-    };
-    if !POLYNOMIAL_DOFS.contains(&a.dof) {
-        return Err(CliError::Usage(format!(
-            "--dof must be one of {POLYNOMIAL_DOFS:?} (got {})",
-            a.dof
-        )));
-    }
-    let v = Polynomial::parse(text, a.dof)
-        .map_err(|e| CliError::Usage(format!("--potential {text:?}: {e}")))?;
-    Ok(Some((text.clone(), v)))
-}
-
 /// The initial point (q, p) and its energy: from --q and --p, or on the section q1 = 0 from
-/// --q2, --p2 and --energy. `potential`: the polynomial potential, if any (else Hénon–Heiles).
-fn start_of(a: &OrbitArgs, potential: Option<&Polynomial>) -> CliResult<(Vec<f64>, Vec<f64>, f64)> {
-    let dof = potential.map_or(2, Polynomial::dof);
-    let v = |q: &[f64]| match potential {
-        Some(v) => v.eval(q),
-        None => HenonHeiles.potential(&[q[0], q[1]]),
-    };
+/// --q2, --p2 and --energy.
+fn start_of(a: &OrbitArgs, system: &System) -> CliResult<(Vec<f64>, Vec<f64>, f64)> {
     if let (Some(q), Some(p)) = (&a.q, &a.p) {
-        for (flag, x) in [("--q", q), ("--p", p)] {
-            if x.len() != dof {
-                return Err(CliError::Usage(format!(
-                    "{flag} needs {dof} comma-separated numbers, one per degree of freedom (got {})",
-                    x.len()
-                )));
-            }
-            for &c in x {
-                finite(flag, c)?;
-            }
-        }
-        let energy = 0.5 * p.iter().map(|x| x * x).sum::<f64>() + v(q);
-        if !energy.is_finite() {
-            return Err(CliError::Usage(format!(
-                "--q, --p: the energy at this point is not finite ({energy})"
-            )));
-        }
+        let energy = system.whole_point(("--q", q), ("--p", p))?;
         return Ok((q.clone(), p.clone(), energy));
     }
+    let dof = system.dof();
     if dof != 2 {
         return Err(CliError::Usage(format!(
             "--q2/--p2 start on the section of a 2-degree-of-freedom system; with --dof {dof} \
@@ -331,15 +262,14 @@ fn start_of(a: &OrbitArgs, potential: Option<&Polynomial>) -> CliResult<(Vec<f64
     let q2 = finite("--q2", a.q2.expect("clap requires --q2 without --q"))?;
     let p2 = finite("--p2", a.p2.expect("clap requires --p2 with --q2"))?;
     let energy = finite("--energy", a.energy.unwrap_or(DEFAULT_ENERGY))?;
-    let radicand = 2.0 * (energy - v(&[0.0, q2])) - p2 * p2;
-    if radicand.is_nan() || radicand <= 0.0 {
-        let e_min = v(&[0.0, q2]) + 0.5 * p2 * p2;
-        return Err(CliError::Usage(format!(
+    let (q, p) = system.on_section(energy, q2, p2).ok_or_else(|| {
+        let e_min = system.potential_at(&[0.0, q2]) + 0.5 * p2 * p2;
+        CliError::Usage(format!(
             "--energy {energy}: (q2, p2) = ({q2}, {p2}) is not on the section q1 = 0, p1 > 0; \
              allowed: --energy > {e_min} for this point"
-        )));
-    }
-    Ok((vec![0.0, q2], vec![radicand.sqrt(), p2], energy))
+        ))
+    })?;
+    Ok((q, p, energy))
 }
 
 pub fn run(args: OrbitArgs) -> CliResult<()> {
@@ -355,46 +285,35 @@ pub fn run(args: OrbitArgs) -> CliResult<()> {
     } else {
         Vectors::Two
     };
-    let (run, energy) = (job.run(), job.energy);
-    let (config, requests) = (&job.config, &job.requests);
-    // The one place the command turns its system into a compiled run: Hénon–Heiles's own
-    // copy, or a polynomial system of one of the compiled sizes.
-    match &job.potential {
-        None => {
-            let result = run_henon_heiles(&run, energy, point(&job), config, requests, vectors);
-            finish(&args, &job, staged, &result, start)
-        }
-        Some((_, v)) => match v.dof() {
-            2 => finish(&args, &job, staged, &polynomial::<2>(&job, vectors), start),
-            3 => finish(&args, &job, staged, &polynomial::<3>(&job, vectors), start),
-            8 => finish(&args, &job, staged, &polynomial::<8>(&job, vectors), start),
-            n => unreachable!("--dof {n} is refused by validate"),
-        },
-    }
-}
-
-/// The job's initial point as arrays of its dimension.
-fn point<const N: usize>(job: &OrbitJob) -> ([f64; N], [f64; N]) {
-    let array = |x: &[f64]| x.try_into().expect("validate checks the point's length");
-    (array(&job.q), array(&job.p))
-}
-
-/// The job's orbit in its polynomial system of N degrees of freedom.
-fn polynomial<const N: usize>(job: &OrbitJob, vectors: Vectors) -> OrbitResult<N>
-where
-    PolynomialSystem<N>: PolynomialRun<N>,
-{
-    let (_, v) = job.potential.as_ref().expect("a polynomial job");
-    let system = PolynomialSystem::<N>::new(v.clone());
-    let (config, requests) = (&job.config, &job.requests);
-    system.run(
+    let mut report = Finish {
+        args: &args,
+        job: &job,
+        staged,
+        start,
+    };
+    job.system.run_orbit(
         &job.run(),
         job.energy,
-        point(job),
-        config,
-        requests,
+        (&job.q, &job.p),
+        &job.config,
+        &job.requests,
         vectors,
+        &mut report,
     )
+}
+
+/// [`finish`] as the report of [`System::run_orbit`].
+struct Finish<'a> {
+    args: &'a OrbitArgs,
+    job: &'a OrbitJob,
+    staged: Option<Staged>,
+    start: Instant,
+}
+
+impl OrbitReport<CliResult<()>> for Finish<'_> {
+    fn report<const N: usize>(&mut self, result: &OrbitResult<N>) -> CliResult<()> {
+        finish(self.args, self.job, self.staged.take(), result, self.start)
+    }
 }
 
 /// Reports the orbit: the summary on stdout and, with --out, the files and plots.
@@ -443,8 +362,8 @@ fn summary_json<const N: usize>(job: &OrbitJob, r: &OrbitResult<N>, wall: f64) -
         }
     }
     json!({
-        "system": if job.potential.is_some() { "polynomial" } else { HenonHeiles.name() },
-        "potential": job.potential.as_ref().map(|(text, _)| text),
+        "system": job.system.name(),
+        "potential": job.system.text(),
         "dof": N,
         "energy": job.energy,
         "method": job.method.name(),

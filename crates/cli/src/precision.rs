@@ -3,30 +3,55 @@
 
 use crate::ladder::{default_ladder, reference, run_ladder, Row, ADAPTIVE_TAU, REFERENCE_DELTA};
 use crate::output::{print_result, write_tables, Staged};
+use crate::system::{System, SystemArgs};
 use crate::usage::{finite, runtime, CliError, CliResult};
 use clap::Args;
-use salient_core::section::on_section;
-use salient_core::{Hamiltonian, HenonHeiles};
 use salient_report::{render_loglog, HLine, Line, LogLogPlot, Table};
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+/// Energy of an orbit started on the section when --energy is not given.
+const DEFAULT_ENERGY: f64 = 0.125;
+
 #[derive(Args, Debug)]
 #[command(allow_negative_numbers = true)]
 pub struct PrecisionArgs {
-    /// R1, C1, C2 (the seed paper's orbits) or Q2,P2 on the section q1 = 0.
-    #[arg(long, default_value = "R1")]
-    orbit: String,
+    /// R1, C1, C2 (the seed paper's Hénon–Heiles orbits) or Q2,P2 on the section q1 = 0 of a
+    /// system of 2 degrees of freedom [default: R1 for Hénon–Heiles].
+    #[arg(long, conflicts_with = "q")]
+    orbit: Option<String>,
+    /// The whole initial point instead of --orbit: q1,…,qN (with --p; the energy follows).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "p"
+    )]
+    q: Option<Vec<f64>>,
+    /// p1,…,pN of the initial point given by --q.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "q"
+    )]
+    p: Option<Vec<f64>>,
     /// Final time of every run.
     #[arg(long = "t-final", default_value_t = 1e3)]
     t_final: f64,
-    /// Energy of the orbit.
-    #[arg(long, default_value_t = 0.125)]
-    energy: f64,
+    /// Energy of an orbit started on the section with --orbit [default: 0.125].
+    #[arg(long, conflicts_with = "q")]
+    energy: Option<f64>,
+    #[command(flatten)]
+    system: SystemArgs,
     /// Compare whole grids instead of one orbit: run this job spec's sweep and compare every
     /// run's class per cell with a reference run of the same grid.
-    #[arg(long, value_name = "SPEC", conflicts_with_all = ["orbit", "t_final", "energy"])]
+    #[arg(
+        long,
+        value_name = "SPEC",
+        conflicts_with_all = ["orbit", "t_final", "energy", "q", "polynomial_system"]
+    )]
     grid: Option<PathBuf>,
     /// With --grid: a run folder of the same grid (holding class.npy) to compare every run
     /// with, instead of the default reference (full mode, f64 Taylor at δ = 1e-13, one per
@@ -53,8 +78,8 @@ pub struct PrecisionArgs {
     json: bool,
 }
 
-/// (q2, p2) of a named orbit or of "Q2,P2".
-fn parse_orbit(s: &str) -> CliResult<(String, f64, f64)> {
+/// (q2, p2) of a named orbit (Hénon–Heiles only) or of "Q2,P2".
+fn parse_orbit(s: &str, system: &System) -> CliResult<(String, f64, f64)> {
     let named = match s.to_ascii_uppercase().as_str() {
         "R1" => Some((0.558, 0.0)),
         "C1" => Some((-0.25, 0.0)),
@@ -62,6 +87,12 @@ fn parse_orbit(s: &str) -> CliResult<(String, f64, f64)> {
         _ => None,
     };
     if let Some((q2, p2)) = named {
+        if !matches!(system, System::HenonHeiles) {
+            return Err(CliError::Usage(format!(
+                "--orbit {s}: R1, C1 and C2 are Hénon–Heiles orbits; with --potential or --system \
+                 give Q2,P2 on the section or the whole point with --q and --p"
+            )));
+        }
         return Ok((s.to_ascii_uppercase(), q2, p2));
     }
     let bad = || {
@@ -76,6 +107,43 @@ fn parse_orbit(s: &str) -> CliResult<(String, f64, f64)> {
         return Err(bad());
     }
     Ok((format!("{q2},{p2}"), q2, p2))
+}
+
+/// The initial point of the ladder: its name, (q, p) and energy, from --q/--p or from --orbit
+/// and --energy on the section q1 = 0.
+fn start_of(args: &PrecisionArgs, system: &System) -> CliResult<(String, Vec<f64>, Vec<f64>, f64)> {
+    if let (Some(q), Some(p)) = (&args.q, &args.p) {
+        let energy = system.whole_point(("--q", q), ("--p", p))?;
+        return Ok(("point".into(), q.clone(), p.clone(), energy));
+    }
+    let orbit = match (&args.orbit, system) {
+        (Some(o), _) => o.clone(),
+        (None, System::HenonHeiles) => "R1".into(),
+        (None, _) => {
+            return Err(CliError::Usage(
+                "--potential/--system: give the orbit, as --orbit Q2,P2 on the section q1 = 0 \
+                 (2 degrees of freedom) or as the whole point with --q and --p"
+                    .into(),
+            ))
+        }
+    };
+    if system.dof() != 2 {
+        return Err(CliError::Usage(format!(
+            "--orbit starts on the section of a 2-degree-of-freedom system; with --dof {} give \
+             the whole point with --q and --p",
+            system.dof()
+        )));
+    }
+    let (name, q2, p2) = parse_orbit(&orbit, system)?;
+    let energy = finite("--energy", args.energy.unwrap_or(DEFAULT_ENERGY))?;
+    let (q, p) = system.on_section(energy, q2, p2).ok_or_else(|| {
+        let e_min = system.potential_at(&[0.0, q2]) + 0.5 * p2 * p2;
+        CliError::Usage(format!(
+            "--energy {energy}: orbit {name} is not on the section q1 = 0, p1 > 0; allowed: \
+             --energy > {e_min}"
+        ))
+    })?;
+    Ok((name, q, p, energy))
 }
 
 fn fmt_num(x: f64) -> String {
@@ -124,20 +192,14 @@ pub fn run(args: PrecisionArgs) -> CliResult<()> {
             json: args.json,
         });
     }
-    let (name, q2, p2) = parse_orbit(&args.orbit)?;
-    let energy = finite("--energy", args.energy)?;
     if !(args.t_final.is_finite() && args.t_final >= 0.5 && args.t_final <= 1e7) {
         return Err(CliError::Usage(format!(
             "--t-final must be a finite number in [0.5, 1e7] (got {})",
             args.t_final
         )));
     }
-    let (q, p) = on_section(&HenonHeiles, energy, &[q2], &[p2]).map_err(|_| {
-        let e_min = HenonHeiles.potential(&[0.0, q2]) + 0.5 * p2 * p2;
-        CliError::Usage(format!(
-            "--energy {energy}: orbit {name} is not on the section q1 = 0, p1 > 0; allowed: --energy > {e_min}"
-        ))
-    })?;
+    let system = args.system.system()?;
+    let (name, q, p, energy) = start_of(&args, &system)?;
     let staged = args
         .out
         .as_deref()
@@ -149,11 +211,10 @@ pub fn run(args: PrecisionArgs) -> CliResult<()> {
         "salient precision: orbit {name}, t = {}, reference taylor-dd δ = {REFERENCE_DELTA:e}",
         args.t_final
     );
-    let reference = reference(energy, q, p, args.t_final);
+    let reference = reference(&system, energy, (&q, &p), args.t_final);
     let rows = run_ladder(
-        energy,
-        q,
-        p,
+        &system,
+        (energy, (&q, &p)),
         args.t_final,
         &ladder,
         &reference,
@@ -212,7 +273,10 @@ pub fn run(args: PrecisionArgs) -> CliResult<()> {
         ]);
     }
     let summary = json!({
-        "orbit": { "name": name, "q2": q2, "p2": p2, "energy": energy },
+        "system": system.name(),
+        "potential": system.text(),
+        "dof": system.dof(),
+        "orbit": { "name": name, "q": q, "p": p, "energy": energy },
         "t_final": args.t_final,
         "adaptive_tau": ADAPTIVE_TAU,
         "reference": {

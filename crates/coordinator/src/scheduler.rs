@@ -350,14 +350,13 @@ impl Run {
             forecast: None,
             forecast_from: None,
             expected: Expected::of_run(&cell_run),
-            adaptive_orbits_per_thread: match &cell_run.run.method {
-                salient_core::Method::TangentMap(_) => None,
-                m => Some(salient_core::run::adaptive_orbits_per_thread(
-                    m,
+            adaptive_orbits_per_thread: cell_run.run.method.is_adaptive().then(|| {
+                salient_core::run::adaptive_orbits_per_thread(
+                    &cell_run.run.method,
                     cell_run.config.tau,
                     cell_run.config.t_final,
-                )),
-            },
+                )
+            }),
             tiles: (0..grid.tile_count()).map(|_| Tile::default()).collect(),
             crossings_said: 0,
             grid,

@@ -1,11 +1,12 @@
-//! Profiling target for the batched stepper (`perf record ./target/release/examples/batch_profile`):
-//! 64 regular orbits, SBAB2C τ = 0.05, t = 1e4; prints ns per orbit-step for 4 lanes on the
-//! pinned target level and 8 lanes in the copy compiled for the host's widest vectors
-//! (`Isa::detect`: AVX-512 where the CPU has it). An argument `4` or `8` runs only that one.
+//! Profiling target for the batched stepper (`perf record
+//! ./target/release/examples/batch_profile`): 64 regular orbits, SBAB2C τ = 0.05, t = 1e4; prints
+//! ns per orbit-step for 4 lanes on the pinned target level and 8 lanes in the copy compiled for
+//! the host's widest vectors (`Isa::detect`: AVX-512 where the CPU has it). An argument `4` or `8`
+//! runs only that one.
 
-use salient_core::batch::{integrate_batch_on, Isa};
 use salient_core::orbit::{OrbitConfig, Requests};
 use salient_core::section::on_section;
+use salient_core::tangent_map::batch::{integrate_batch_on, Isa};
 use salient_core::{HenonHeiles, Scheme, TangentMap};
 
 fn run<const L: usize>(isa: Isa) {

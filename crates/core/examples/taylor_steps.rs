@@ -2,10 +2,10 @@
 //! steps to t = 1e4, for side-by-side runs with heyoka (`scripts/bench-heyoka.sh`).
 //! Usage: taylor_steps [DELTA]
 
+use salient_core::adaptive::taylor::Taylor;
 use salient_core::orbit::initial_vectors;
+use salient_core::phase::Phase;
 use salient_core::section::on_section;
-use salient_core::tangent::Phase;
-use salient_core::taylor::Taylor;
 use salient_core::{Deviation, Hamiltonian, HenonHeiles};
 use std::time::Instant;
 
@@ -30,7 +30,7 @@ fn main() {
     }
     println!(
         "salient taylor  tol {delta:e} order {:>2}  steps {steps}  {:.3} ms  {:.0} ns/step  |dH/H| {energy:.1e}",
-        salient_core::taylor::order_for(delta),
+        salient_core::adaptive::taylor::order_for(delta),
         best * 1e3,
         best * 1e9 / steps as f64
     );

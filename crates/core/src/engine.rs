@@ -62,7 +62,7 @@ pub fn thread_cpu_ns() -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::batch::Isa;
+    use crate::tangent_map::batch::Isa;
 
     /// The drivers' instruction set follows the choice (either choice gives the same bits, so
     /// other tests running meanwhile are unaffected).

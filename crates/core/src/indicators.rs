@@ -33,7 +33,7 @@ fn pow2_factor(n2: f64) -> (f64, i64) {
 /// Squared norm of the phase-space vector (δq, δp).
 #[inline(always)]
 pub fn norm2<const N: usize>(dq: &[f64; N], dp: &[f64; N]) -> f64 {
-    crate::real::dot(dq, dq) + crate::real::dot(dp, dp)
+    crate::arith::real::dot(dq, dq) + crate::arith::real::dot(dp, dp)
 }
 
 /// SALI = min(‖ŵ1 + ŵ2‖, ‖ŵ1 − ŵ2‖) of two deviation vectors given as (δq, δp).
@@ -104,8 +104,8 @@ pub fn in_band(n2: f64) -> bool {
 
 /// The lanes whose squared norm lies outside [`in_band`]'s band (or is NaN), as bits.
 #[inline(always)]
-pub fn out_of_band_bits<const L: usize>(n2: crate::real::Lanes<L>) -> u64 {
-    use crate::real::Real;
+pub fn out_of_band_bits<const L: usize>(n2: crate::arith::real::Lanes<L>) -> u64 {
+    use crate::arith::real::Real;
     n2.not_lt_bits(Real::splat(RESCALE_ABOVE)) | n2.not_gt_bits(Real::splat(RESCALE_BELOW))
 }
 

@@ -1,13 +1,14 @@
 //! The one-orbit driver: integrate an orbit with its deviation vectors to t_final (or an early
 //! stop), computing SALI every τ and only what the caller asked for besides.
 
-use crate::hamiltonian::Hamiltonian;
+use crate::arith::real::dot;
 use crate::indicators::{
     gali, may_be_aligned, norm2, pow2_rescale, sali, GrowthHistory, GrowthIndicators, LogGrowth,
 };
-use crate::real::dot;
+use crate::phase::Phase;
 use crate::section::{locate_upward, Crossing, CrossingStep};
-use crate::tangent::{EdgeIncrement, Phase, Stepping, TangentMap};
+use crate::systems::hamiltonian::Hamiltonian;
+use crate::tangent_map::map::{EdgeIncrement, Stepping, TangentMap};
 use rand_chacha::rand_core::{RngCore, SeedableRng};
 use serde::{Deserialize, Serialize};
 
@@ -160,7 +161,8 @@ pub struct OrbitConfig {
 }
 
 impl OrbitConfig {
-    /// A configuration with default thresholds, axis deviation vectors and the Hamiltonian's escape radius.
+    /// A configuration with default thresholds, axis deviation vectors and the Hamiltonian's escape
+    /// radius.
     pub fn new(tau: f64, t_final: f64) -> Self {
         OrbitConfig {
             tau,

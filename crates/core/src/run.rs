@@ -1,21 +1,23 @@
 //! One entry point for every method: a [`MethodRun`] says which integrator, with which τ, δ and
 //! protocol, and [`run_orbit`] dispatches to the tangent-map, DOP853 or Taylor driver.
 
-use crate::adaptive::{
+use crate::adaptive::dop853::{Dop853, Dop853Config};
+use crate::adaptive::driver::{
     integrate_adaptive_watched, Abandoned, Dop853Orbit, Protocol, TaylorOrbit, Unwatched, Watch,
 };
-use crate::batch::{integrate_feed_on, BatchFeed, IcsFeed, Isa};
-use crate::dd::DoubleDouble;
-use crate::dop853::{Dop853, Dop853Config};
-use crate::lanes::{
+use crate::adaptive::lanes::{
     integrate_feed_dop853_on, integrate_feed_scalar, integrate_feed_taylor_on, LaneSetup, SimdOf,
     FEWER_LANES_ABOVE_T_FINAL, LANES, LONG_RUN_LANES,
 };
-use crate::method::Method;
+use crate::adaptive::taylor::Taylor;
+use crate::arith::dd::DoubleDouble;
+use crate::method::{LanePolicy, Method, F64_TAYLOR_LANES_BELOW_TAU};
 use crate::orbit::{initial_vectors, integrate, OrbitConfig, OrbitResult, Requests};
-use crate::polynomial::PolynomialSystem;
-use crate::tangent::{Phase, TangentMap};
-use crate::taylor::{Taylor, TaylorSeries};
+use crate::phase::Phase;
+use crate::systems::polynomial::PolynomialSystem;
+use crate::systems::series::TaylorSeries;
+use crate::tangent_map::batch::{integrate_feed_on, BatchFeed, IcsFeed, Isa};
+use crate::tangent_map::map::TangentMap;
 use crate::HenonHeiles;
 
 /// A method with its settings.
@@ -30,16 +32,9 @@ pub struct MethodRun {
 }
 
 impl MethodRun {
-    /// The Taylor order, DOP853's 8 or the splitting scheme's order.
+    /// The Taylor order, DOP853's 8 or the splitting scheme's order ([`Method::order`]).
     pub fn order(&self) -> u32 {
-        match &self.method {
-            Method::TangentMap(s) => s.order,
-            Method::Dop853 => 8,
-            Method::Taylor | Method::TaylorDd => {
-                crate::taylor::order_for(self.delta.expect("adaptive methods carry a tolerance"))
-                    as u32
-            }
-        }
+        self.method.order(self.delta)
     }
 }
 
@@ -240,6 +235,27 @@ pub trait FeedDrivers<const N: usize>: TaylorSeries<N> + Sized {
         guided: bool,
         feed: &mut dyn BatchFeed<N>,
     );
+
+    /// The grid's driver for `run` on this system: the batched tangent map in `lanes` (4 or 8)
+    /// lanes, or [`Self::integrate_feed_adaptive`] for an adaptive method.
+    #[allow(clippy::too_many_arguments)]
+    fn integrate_feed_run(
+        &self,
+        run: &MethodRun,
+        energy: f64,
+        config: &OrbitConfig,
+        requests: &Requests,
+        (lanes, guided): (usize, bool),
+        feed: &mut dyn BatchFeed<N>,
+    ) {
+        match &run.method {
+            Method::TangentMap(scheme) => {
+                let map = TangentMap::new(self, scheme, config.tau);
+                Self::integrate_feed(Isa::detect(), lanes, &map, config, requests, feed)
+            }
+            _ => self.integrate_feed_adaptive(run, energy, config, requests, guided, feed),
+        }
+    }
 }
 
 impl FeedDrivers<2> for HenonHeiles {
@@ -345,29 +361,15 @@ pub fn run_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
     }
 }
 
-/// f64 Taylor runs in SIMD lanes below this τ, one orbit per thread above it. Lanes make a step
-/// cheaper per orbit but keep four orbits per thread in flight, and the fast-PSS rule drops
-/// far more of their steps than one at a time; the more steps a crossing takes, the more the
-/// cheaper step pays, so lanes win at τ = 0.1 and below and lose at τ = 0.5 (figures:
-/// docs/performance.md). The same results either way (each lane computes what the scalar
-/// driver does).
-pub const F64_TAYLOR_LANES_BELOW_TAU: f64 = 0.25;
-
-/// DOP853 runs in SIMD lanes below this τ, one orbit per thread above it: as for f64 Taylor,
-/// the lanes' cheaper steps against the share of their steps that speculation drops. Lanes
-/// win below τ = 0.1, break even at it and lose above; the lead shrinks at longer t_final, as
-/// more of the orbits in flight are overtaken (figures: docs/performance.md).
-pub const DOP853_LANES_BELOW_TAU: f64 = 0.1;
-
 /// How many orbits one thread of [`integrate_feed_adaptive`] integrates at once with the
 /// adaptive `method` at renormalisation interval `tau` up to `t_final` (schedulers size their
 /// work by it).
 pub fn adaptive_orbits_per_thread(method: &Method, tau: f64, t_final: f64) -> usize {
-    let in_lanes = match method {
-        Method::TaylorDd => true,
-        Method::Taylor => tau < F64_TAYLOR_LANES_BELOW_TAU,
-        Method::Dop853 => tau < DOP853_LANES_BELOW_TAU,
-        Method::TangentMap(_) => false,
+    let in_lanes = match method.info().lanes {
+        LanePolicy::Adaptive {
+            lanes_below_tau, ..
+        } => tau < lanes_below_tau,
+        LanePolicy::Batched => false,
     };
     // Long runs at large τ (natural steps, where a lane's step saves least) take fewer lanes.
     let long = tau >= F64_TAYLOR_LANES_BELOW_TAU && t_final > FEWER_LANES_ABOVE_T_FINAL;
@@ -387,13 +389,20 @@ pub fn adaptive_orbits_per_thread(method: &Method, tau: f64, t_final: f64) -> us
 pub const GUIDED_DOP853_LANES: usize = 8;
 
 /// The orbits one thread of [`integrate_feed_adaptive`] integrates at once: as
-/// [`adaptive_orbits_per_thread`], but DOP853 takes [`GUIDED_DOP853_LANES`] when `guided` and
+/// [`adaptive_orbits_per_thread`], but a method registered `wider_when_guided` (DOP853,
+/// [`LanePolicy`]) takes [`GUIDED_DOP853_LANES`] when `guided` and
 /// the host runs that many lanes in one register ([`Isa::lanes`]).
 pub fn feed_orbits_per_thread(method: &Method, tau: f64, t_final: f64, guided: bool) -> usize {
     match adaptive_orbits_per_thread(method, tau, t_final) {
         LANES
             if guided
-                && matches!(method, Method::Dop853)
+                && matches!(
+                    method.info().lanes,
+                    LanePolicy::Adaptive {
+                        wider_when_guided: true,
+                        ..
+                    }
+                )
                 && Isa::detect().lanes() == GUIDED_DOP853_LANES =>
         {
             GUIDED_DOP853_LANES
@@ -405,8 +414,8 @@ pub fn feed_orbits_per_thread(method: &Method, tau: f64, t_final: f64, guided: b
 /// Integrates the orbits `feed` supplies with an adaptive method, each as [`run_adaptive`]
 /// would under a watch that passes its crossings to the feed and lets the feed abandon it, and
 /// hands each result to the feed as its orbit ends: [`feed_orbits_per_thread`] orbits at a
-/// time in SIMD lanes ([`crate::lanes`], the same bits) where that is more than one, else one
-/// at a time. `guided`: the feed orders its cells by a forecast, which keeps the orbits in
+/// time in SIMD lanes ([`crate::adaptive::lanes`], the same bits) where that is more than one, else
+/// one at a time. `guided`: the feed orders its cells by a forecast, which keeps the orbits in
 /// flight from being overtaken, so DOP853 may take wider batches.
 pub fn integrate_feed_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
     ham: &H,

@@ -1,8 +1,9 @@
 //! The surface of section q1 = 0, p1 > 0: initial conditions on it and crossing location.
 
-use crate::hamiltonian::Hamiltonian;
-use crate::real::Lanes;
-use crate::tangent::{Phase, StepPart, Stepping, TangentMap};
+use crate::arith::real::Lanes;
+use crate::phase::Phase;
+use crate::systems::hamiltonian::Hamiltonian;
+use crate::tangent_map::map::{StepPart, Stepping, TangentMap};
 
 /// A point where the orbit crosses q1 = 0 upwards (p1 > 0).
 #[derive(Clone, Copy, Debug, PartialEq)]

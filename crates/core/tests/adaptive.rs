@@ -2,12 +2,12 @@
 //! named orbits, crossings from dense output and the energy behaviour of the paper's Table 1.
 
 use crate::common::{c1, end_distance, r1, srkn14a_r1};
-use salient_core::adaptive::{integrate_adaptive, Dop853Orbit, Protocol};
-use salient_core::dop853::{Dop853, Dop853Config};
+use salient_core::adaptive::dop853::{Dop853, Dop853Config};
+use salient_core::adaptive::driver::{integrate_adaptive, Dop853Orbit, Protocol};
 use salient_core::orbit::{
     initial_vectors, integrate, Class, OrbitConfig, OrbitResult, Requests, Status,
 };
-use salient_core::tangent::Phase;
+use salient_core::phase::Phase;
 use salient_core::{Deviation, HenonHeiles, Scheme, TangentMap};
 
 fn dop(

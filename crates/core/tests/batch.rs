@@ -7,11 +7,11 @@
 //! `*_henon_heiles` entry points the grid runs): the tests check what ships, and this binary
 //! does not compile the drivers again.
 
-use salient_core::batch::Isa;
 use salient_core::indicators::GrowthIndicators;
 use salient_core::orbit::{OrbitConfig, OrbitResult, Requests, Status};
 use salient_core::run::{integrate_batch_henon_heiles, run_henon_heiles, MethodRun, Vectors};
 use salient_core::section::on_section;
+use salient_core::tangent_map::batch::Isa;
 use salient_core::{HenonHeiles, Method, Scheme, TangentMap};
 
 fn growth_bits(g: Option<GrowthIndicators>) -> Option<[u64; 3]> {
@@ -198,7 +198,7 @@ fn batched_lanes_equal_scalar_orbits_bit_for_bit() {
 /// 0.2: orbits leave the windows' radius first) and new orbits coming into lanes mid-window,
 /// and with the early stop off, where chaotic orbits' vectors grow through the rescaling
 /// band. (The margins themselves are far from what real orbits reach in a window; the bound
-/// they rest on is tested along orbits in `tangent.rs`.)
+/// they rest on is tested along orbits in `tangent_map/map.rs`.)
 #[test]
 fn quiet_windows_keep_the_scalar_bits() {
     let crossings = Requests {
@@ -408,14 +408,14 @@ fn settled_crossings_lie_within_their_bound() {
 /// abandons (at the same step as a watch abandons the one orbit).
 #[test]
 fn adaptive_lanes_equal_scalar_orbits_bit_for_bit() {
-    use salient_core::adaptive::{Abandoned, Protocol, Watch};
-    use salient_core::batch::{BatchFeed, Feed};
-    use salient_core::lanes::{LANES, LONG_RUN_LANES};
+    use salient_core::adaptive::driver::{Abandoned, Protocol, Watch};
+    use salient_core::adaptive::lanes::{LANES, LONG_RUN_LANES};
     use salient_core::run::{
         adaptive_orbits_per_thread, feed_orbits_per_thread, integrate_feed_adaptive_henon_heiles,
         run_adaptive_henon_heiles, GUIDED_DOP853_LANES,
     };
     use salient_core::section::Crossing;
+    use salient_core::tangent_map::batch::{BatchFeed, Feed};
 
     type Outcome = Result<OrbitResult<2>, Abandoned>;
     /// Orbit `id` is abandoned at its third poll when id % 7 == 3, at its fiftieth when
@@ -620,9 +620,9 @@ fn adaptive_lanes_equal_scalar_orbits_bit_for_bit() {
 /// renormalisation, rejected attempts (a bold controller) and the dense output of a step.
 #[test]
 fn dop853_lanes_equal_the_one_orbit_integrator_step_by_step() {
-    use salient_core::dop853::{Dense, Dop853, Dop853Config, Dop853Lanes};
-    use salient_core::stepping::unit_vectors;
-    use salient_core::tangent::Phase;
+    use salient_core::adaptive::dop853::{Dense, Dop853, Dop853Config, Dop853Lanes};
+    use salient_core::adaptive::stepping::unit_vectors;
+    use salient_core::phase::Phase;
     const L: usize = 4;
     let ham = HenonHeiles;
     // A bold controller (steps may grow twentyfold), so that some attempts are rejected.

@@ -1,8 +1,8 @@
 //! DOP853: measured orders of the method and of its dense output, and tolerance tracking.
 
-use salient_core::dop853::{Dop853, Dop853Config};
-use salient_core::real::Real;
-use salient_core::tangent::Phase;
+use salient_core::adaptive::dop853::{Dop853, Dop853Config};
+use salient_core::arith::real::Real;
+use salient_core::phase::Phase;
 use salient_core::Hamiltonian;
 
 /// The harmonic oscillator V = ½ q²: q(t) = cos t, p(t) = −sin t from (1, 0).

@@ -5,7 +5,8 @@
 
 use crate::common::{dist, ic, r1};
 use salient_core::orbit::{integrate, OrbitConfig, Requests};
-use salient_core::tangent::{Phase, Stepping};
+use salient_core::phase::Phase;
+use salient_core::tangent_map::map::Stepping;
 use salient_core::{Hamiltonian, HenonHeiles, Scheme, TangentMap};
 
 /// The orbit alone advanced to `t` with steps τ through the production (merged) stepping loop.
@@ -264,20 +265,20 @@ impl Hamiltonian<3> for Oscillator3 {
     fn name(&self) -> &'static str {
         "oscillator-3"
     }
-    fn potential<T: salient_core::real::Real>(&self, q: &[T; 3]) -> T {
+    fn potential<T: salient_core::arith::real::Real>(&self, q: &[T; 3]) -> T {
         let mut v = T::splat(0.0);
         for i in 0..3 {
             v += T::splat(0.5 * self.omega[i] * self.omega[i]) * q[i] * q[i];
         }
         v
     }
-    fn grad<T: salient_core::real::Real>(&self, q: &[T; 3]) -> [T; 3] {
+    fn grad<T: salient_core::arith::real::Real>(&self, q: &[T; 3]) -> [T; 3] {
         core::array::from_fn(|i| T::splat(self.omega[i] * self.omega[i]) * q[i])
     }
-    fn hess_vec<T: salient_core::real::Real>(&self, _q: &[T; 3], u: &[T; 3]) -> [T; 3] {
+    fn hess_vec<T: salient_core::arith::real::Real>(&self, _q: &[T; 3], u: &[T; 3]) -> [T; 3] {
         core::array::from_fn(|i| T::splat(self.omega[i] * self.omega[i]) * u[i])
     }
-    fn third_vec<T: salient_core::real::Real>(
+    fn third_vec<T: salient_core::arith::real::Real>(
         &self,
         _q: &[T; 3],
         _w: &[T; 3],

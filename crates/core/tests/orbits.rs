@@ -6,8 +6,8 @@
 use crate::common::{c1, ic, r1, ENERGY};
 use proptest::prelude::*;
 use salient_core::orbit::{integrate, Class, Deviation, OrbitConfig, Requests, Status};
+use salient_core::phase::Phase;
 use salient_core::section::p1_squared;
-use salient_core::tangent::Phase;
 use salient_core::{Hamiltonian, HenonHeiles, Scheme, TangentMap};
 
 fn sbab2c() -> Scheme {
@@ -401,7 +401,7 @@ proptest! {
 /// FLI grows like λt.
 #[test]
 fn megno_and_fli_follow_theory_on_r1_and_c1() {
-    use salient_core::adaptive::Protocol;
+    use salient_core::adaptive::driver::Protocol;
     use salient_core::run::{run_henon_heiles, MethodRun, Vectors};
     use salient_core::Method;
     let requests = Requests {

@@ -5,14 +5,15 @@
 use crate::common::{c1, r1, ENERGY};
 use crate::integrators::assert_jacobian_and_symplectic;
 use proptest::prelude::*;
-use salient_core::adaptive::Protocol;
-use salient_core::dd::DoubleDouble;
-use salient_core::dop853::{Dop853, Dop853Config};
+use salient_core::adaptive::dop853::{Dop853, Dop853Config};
+use salient_core::adaptive::driver::Protocol;
+use salient_core::adaptive::taylor::Taylor;
+use salient_core::arith::dd::DoubleDouble;
+use salient_core::arith::real::Real;
 use salient_core::orbit::{initial_vectors, integrate, Class, OrbitConfig, OrbitResult, Requests};
-use salient_core::polynomial::{named, Polynomial, PolynomialSystem};
-use salient_core::real::Real;
 use salient_core::run::{run_orbit, MethodRun, PolynomialRun, Vectors};
-use salient_core::taylor::{Series, Taylor, TaylorSeries, P_MAX};
+use salient_core::systems::polynomial::{named, Polynomial, PolynomialSystem};
+use salient_core::systems::series::{Series, TaylorSeries, P_MAX};
 use salient_core::{Deviation, Hamiltonian, HenonHeiles, Method, Phase, Scheme, TangentMap};
 use std::f64::consts::PI;
 

@@ -2,13 +2,14 @@
 //! differences, agreement with other methods, both protocols, and double-double accuracy.
 
 use crate::common::{c1, end_distance, r1, srkn14a_r1};
-use salient_core::adaptive::{integrate_adaptive, Protocol, TaylorOrbit};
-use salient_core::dd::DoubleDouble;
-use salient_core::dop853::{rhs, Dop853, Dop853Config};
+use salient_core::adaptive::dop853::{rhs, Dop853, Dop853Config};
+use salient_core::adaptive::driver::{integrate_adaptive, Protocol, TaylorOrbit};
+use salient_core::adaptive::taylor::{Jet, Taylor};
+use salient_core::arith::dd::DoubleDouble;
+use salient_core::arith::real::Real;
 use salient_core::orbit::{initial_vectors, Class, OrbitConfig, OrbitResult, Requests, Status};
-use salient_core::real::Real;
-use salient_core::tangent::Phase;
-use salient_core::taylor::{Jet, Series, Taylor, TaylorSeries};
+use salient_core::phase::Phase;
+use salient_core::systems::series::{Series, TaylorSeries};
 use salient_core::{Deviation, Hamiltonian, HenonHeiles};
 
 /// Constant force: V = g q, so q(t) = q0 + p0 t − g t²/2 exactly.
@@ -281,7 +282,7 @@ fn orbits_that_blow_up_end_with_a_status_not_a_hang() {
         );
         assert!(r.t_reached < 100.0 && r.class.is_none());
         let (dq, dp) = initial_vectors::<2, 2>(Deviation::Axes);
-        let mut d = salient_core::adaptive::Dop853Orbit::new(
+        let mut d = salient_core::adaptive::driver::Dop853Orbit::new(
             &HenonHeiles,
             Dop853::new(
                 &HenonHeiles,

@@ -1,8 +1,8 @@
 //! Grids of initial conditions on the surface of section: geometry, tiles and canonical order
-//! ([`geometry`]) on the system and section of [`surface`], the fast-PSS [`ledger`] that commits orbit outcomes in canonical order, the
-//! tile [`executor`] that integrates cells on a rayon pool, and the classification counts
-//! ([`summary`]), job [`spec`]s parsed from text and validated, and the process's CPU clock
-//! ([`cpu`]). No files, no networking.
+//! ([`geometry`]) on the system and section of [`surface`], the fast-PSS [`ledger`] that commits
+//! orbit outcomes in canonical order, the tile [`executor`] that integrates cells on a rayon
+//! pool, the classification counts ([`summary`]), job [`spec`]s parsed from text and validated,
+//! and the process's CPU clock ([`cpu`]). No files, no networking.
 
 pub mod cpu;
 pub mod executor;

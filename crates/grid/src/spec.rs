@@ -9,10 +9,10 @@
 use crate::executor::CellRun;
 use crate::geometry::{Grid, ScanOrder};
 use crate::surface::{Coordinate, SectionSpec, Surface, SystemSpec};
-use salient_core::adaptive::Protocol;
+use salient_core::adaptive::driver::Protocol;
 use salient_core::orbit::{Deviation, OrbitConfig, Thresholds};
-use salient_core::polynomial::named::fpu_beta;
 use salient_core::run::{MethodRun, GRID_DOFS};
+use salient_core::systems::polynomial::named::fpu_beta;
 use salient_core::Method;
 use serde::Serialize;
 use serde_json::{Map, Value};
@@ -709,8 +709,8 @@ fn range(
     Ok((lo, hi))
 }
 
-/// Largest Hénon–Heiles energy a spec may ask for: six times the escape energy, where most orbits leave
-/// within a few crossings.
+/// Largest Hénon–Heiles energy a spec may ask for: six times the escape energy, where most orbits
+/// leave within a few crossings.
 const MAX_ENERGY: f64 = 1.0;
 
 /// Default section bounds of Hénon–Heiles at energy H: q2 between the two real roots of

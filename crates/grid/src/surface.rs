@@ -7,8 +7,8 @@
 //! the integrators, the crossing detection and taylor-dd's energy-exact momentum need no other
 //! plane.
 
-use salient_core::polynomial::{Polynomial, PolynomialSystem};
 use salient_core::section::{on_section, p1_squared};
+use salient_core::systems::polynomial::{Polynomial, PolynomialSystem};
 use salient_core::HenonHeiles;
 use std::fmt;
 use std::sync::Arc;

@@ -1,7 +1,7 @@
 //! The fast-PSS engine on real orbits: the paper's Table 2 TM row, fast vs full, and
 //! independence from the number of threads.
 
-use salient_core::adaptive::Protocol;
+use salient_core::adaptive::driver::Protocol;
 use salient_core::method::Method;
 use salient_core::orbit::OrbitConfig;
 use salient_core::run::{adaptive_orbits_per_thread, MethodRun};
@@ -118,8 +118,9 @@ fn labels_do_not_depend_on_threads_or_window() {
         assert_eq!(cells(&a), cells(&b), "{threads} threads");
     }
     // Adaptive methods stream one orbit per thread or a few in SIMD lanes (taylor-dd always,
-    // f64 Taylor and DOP853 at small τ), claiming crossed cells and abandoning orbits as they go: the labels are those of
-    // the sequential rule (rounds of one cell, the worker's path), with one thread or two.
+    // f64 Taylor and DOP853 at small τ), claiming crossed cells and abandoning orbits as they go:
+    // the labels are those of the sequential rule (rounds of one cell, the worker's path), with one
+    // thread or two.
     let dop = adaptive(Method::Dop853, 0.5, 500.0);
     let mut taylor = dop.clone();
     taylor.run.method = Method::Taylor;

@@ -2,8 +2,8 @@
 //! and other programs.
 //!
 //! By design this crate owns the tables (Markdown, CSV, JSON), the `.npy` array writers, and the
-//! maps and plots (PNG and SVG); nothing here integrates or computes indicators. So far the plots and
-//! plain tables ([`Table`], Markdown and CSV) and NumPy `.npy` arrays ([`write_npy_f64`]) exist:
+//! maps and plots (PNG and SVG); nothing here integrates or computes indicators. It holds plain
+//! tables ([`Table`], Markdown and CSV), NumPy `.npy` arrays ([`write_npy_f64`]) and the plots:
 //!
 //! * [`render_loglog`] draws lines on log-log axes (SALI/GALI against time, work-precision
 //!   diagrams), with dashed reference lines and a legend, and [`render_panels`] several of

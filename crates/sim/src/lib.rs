@@ -329,10 +329,11 @@ impl Simulation {
         let grid = spec.grid(0);
         let mode = spec.mode(0);
         let first = spec.cell_run(0);
-        let lanes = params.lanes.unwrap_or_else(|| match &first.run.method {
-            salient_core::Method::TangentMap(_) => executor::lanes(mode),
-            m => salient_core::run::adaptive_orbits_per_thread(
-                m,
+        let method = &first.run.method;
+        let lanes = params.lanes.unwrap_or_else(|| match method.is_adaptive() {
+            false => executor::lanes(mode),
+            true => salient_core::run::adaptive_orbits_per_thread(
+                method,
                 first.config.tau,
                 first.config.t_final,
             ),
@@ -625,7 +626,9 @@ impl Simulation {
             threads: self.params.threads,
             lanes: self.lanes,
             lane_step_ns: self.lane_step_ns(),
-            poll_steps: salient_core::batch::poll_interval(self.spec.cell_run(0).config.tau),
+            poll_steps: salient_core::tangent_map::batch::poll_interval(
+                self.spec.cell_run(0).config.tau,
+            ),
             max_leases: self.params.max_leases,
             busy_poll_ns: self.params.config.poll.as_nanos() as u64,
             tells_crossings: executor::tells_crossings(&self.spec.cell_run(0)),

@@ -5,10 +5,10 @@ use super::{drive_feed, initial_point, lanes, outcome, requests_for, CellRun};
 use crate::geometry::Grid;
 use crate::ledger::{Mode, Outcome};
 use rayon::prelude::*;
-use salient_core::batch::{BatchFeed, Feed};
 use salient_core::orbit::OrbitResult;
 use salient_core::run::adaptive_orbits_per_thread;
 use salient_core::section::CellLattice;
+use salient_core::tangent_map::batch::{BatchFeed, Feed};
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicUsize, Ordering};
 

@@ -5,11 +5,10 @@ use super::initial_point;
 use super::{drive_plane, integrate_cells, outcome, requests_for, CellRun, Claims};
 use crate::geometry::Grid;
 use crate::ledger::{Forecast, Ledger, Mode, Outcome};
-use salient_core::batch::{BatchFeed, Feed};
-use salient_core::method::Method;
 use salient_core::orbit::OrbitResult;
 use salient_core::run::adaptive_orbits_per_thread;
 use salient_core::section::{CellLattice, Crossing};
+use salient_core::tangent_map::batch::{BatchFeed, Feed};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, MutexGuard, TryLockError};
 
@@ -512,13 +511,13 @@ fn finish(shared: Mutex<Shared<'_>>, claims: &Claims) -> Ledger {
 
 /// Whether [`run_embedded_forecast`] lets a forecast guide this run: streaming fast PSS whose
 /// threads keep several orbits in flight (lanes), the speculation a [`Forecast`] guides, unless
-/// the engine choices turn forecasts off ([`salient_core::engine::EngineChoices::forecasts`]). An adaptive method one orbit at a time drops little, and there a
-/// forecast only sends it further ahead and slows the run, while lanes gain from a good one
-/// (figures: docs/performance.md).
+/// the engine choices turn forecasts off ([`salient_core::engine::EngineChoices::forecasts`]). An
+/// adaptive method one orbit at a time drops little, and there a forecast only sends it further
+/// ahead and slows the run, while lanes gain from a good one (figures: docs/performance.md).
 pub fn takes_forecast(cell_run: &CellRun, mode: Mode) -> bool {
     let (method, config) = (&cell_run.run.method, &cell_run.config);
-    let several_in_flight = matches!(method, Method::TangentMap(_))
-        || adaptive_orbits_per_thread(method, config.tau, config.t_final) > 1;
+    let several_in_flight =
+        !method.is_adaptive() || adaptive_orbits_per_thread(method, config.tau, config.t_final) > 1;
     mode == Mode::FastPss
         && cell_run.checkpoints_per_decade == 0
         && several_in_flight

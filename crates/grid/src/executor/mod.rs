@@ -19,14 +19,12 @@ pub use stream::{integrate_stream, tells_crossings, CellSource, Take, Verdict};
 use crate::geometry::Grid;
 use crate::ledger::{CellIndicators, Mode, Outcome};
 use crate::surface::Compiled;
-use salient_core::batch::{BatchFeed, Isa};
-use salient_core::method::Method;
 use salient_core::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Status,
 };
 use salient_core::run::{FeedDrivers, MethodRun};
 use salient_core::section::Crossing;
-use salient_core::TangentMap;
+use salient_core::tangent_map::batch::{BatchFeed, Isa};
 
 /// Orbits advanced together in one batched stepper on the pinned target level, and the unit
 /// in which schedulers size their batches (see [`lanes`] for what runs).
@@ -179,19 +177,12 @@ fn drive_on<S: FeedDrivers<N>, const N: usize>(
     guided: bool,
     feed: &mut dyn BatchFeed<N>,
 ) {
-    let config = &cell_run.config;
-    match &cell_run.run.method {
-        Method::TangentMap(scheme) => {
-            let map = TangentMap::new(system, scheme, config.tau);
-            S::integrate_feed(Isa::detect(), lanes(mode), &map, config, requests, feed)
-        }
-        _ => system.integrate_feed_adaptive(
-            &cell_run.run,
-            grid.energy,
-            config,
-            requests,
-            guided,
-            feed,
-        ),
-    }
+    system.integrate_feed_run(
+        &cell_run.run,
+        grid.energy,
+        &cell_run.config,
+        requests,
+        (lanes(mode), guided),
+        feed,
+    )
 }

@@ -6,9 +6,9 @@ use super::{CellRun, Claims, LocalLedger};
 
 use crate::geometry::Grid;
 use crate::ledger::{Mode, Outcome};
-use salient_core::batch::{BatchFeed, Feed};
 use salient_core::orbit::OrbitResult;
 use salient_core::section::{CellLattice, Crossing};
+use salient_core::tangent_map::batch::{BatchFeed, Feed};
 
 /// Where [`integrate_stream`] gets its cells and sends their results: a worker's leases,
 /// which arrive while earlier ones still run.

@@ -4,9 +4,9 @@
 //! vectors scaled to unit length. `dop853` and `taylor` build on this module alone, and
 //! `adaptive` on the three, so no two of them import each other.
 
-use crate::dd::DoubleDouble;
-use crate::real::{dot, Lanes, Real};
-use crate::tangent::Phase;
+use crate::arith::dd::DoubleDouble;
+use crate::arith::real::{dot, Lanes, Real};
+use crate::phase::Phase;
 
 /// A number the Taylor integrator can run in: it must convert to f64 for step control.
 pub trait Scalar: Real {
@@ -166,7 +166,7 @@ pub struct StepEnd<T, const K: usize> {
     pub cross: T,
 }
 
-impl<T: crate::real::Real, const K: usize> StepEnd<T, K> {
+impl<T: crate::arith::real::Real, const K: usize> StepEnd<T, K> {
     /// The sums over `y`.
     #[inline(always)]
     pub fn of<const N: usize>(y: &Phase<T, N, K>) -> Self {
@@ -237,7 +237,7 @@ pub fn unit_deviations_lanes<T, const N: usize, const K: usize, const L: usize>(
     mask: &[bool; L],
 ) -> [f64; L]
 where
-    T: Lanewise + crate::real::Real<Lead = Lanes<L>>,
+    T: Lanewise + crate::arith::real::Real<Lead = Lanes<L>>,
 {
     if !mask.contains(&true) {
         return [1.0; L];

@@ -10,138 +10,12 @@
 //! double-double (`taylor-dd`), one orbit at a time ([`Taylor`]) or several in SIMD lanes
 //! ([`TaylorLanes`]).
 
-use crate::hamiltonian::{Hamiltonian, HenonHeiles};
-use crate::real::Real;
-use crate::stepping::{phase_lane, set_phase_lane, LaneSteps, Lanewise, Scalar, StepFailure};
-use crate::tangent::Phase;
-
-/// Highest order supported (δ = 1e-32 needs p = 38).
-pub const P_MAX: usize = 48;
-
-/// Taylor coefficients of one variable up to P_MAX.
-pub type Series<T> = [T; P_MAX + 1];
-
-/// Σ_{j=0..k} a_j b_{k−j}: coefficient k of a product.
-#[inline(always)]
-pub fn cauchy<T: Real>(a: &Series<T>, b: &Series<T>, k: usize) -> T {
-    let mut s = a[0] * b[k];
-    for j in 1..=k {
-        s = a[j].mul_add(b[k - j], s);
-    }
-    s
-}
-
-/// Hamiltonians whose ∇V is a polynomial, so its series along a solution is a finite
-/// combination of Cauchy products.
-pub trait TaylorSeries<const N: usize>: Hamiltonian<N> {
-    /// How many series of q [`Self::all_coeffs`] keeps across orders (the length of its
-    /// `derived`).
-    fn derived_series(&self) -> usize {
-        0
-    }
-
-    /// Coefficient k of ∇V(q(t)) and of D²V(q(t))·u(t) for every deviation vector u, given the
-    /// coefficients 0..=k of q and u. Called for k = 0, 1, 2, … in turn with the same
-    /// `derived` ([`Self::derived_series`] long): series of q an implementation fills at order
-    /// k and reads at every later order (products of coordinates, instead of recomputing them
-    /// for each).
-    fn all_coeffs<T: Real, const K: usize>(
-        &self,
-        q: &[Series<T>; N],
-        u: &[[Series<T>; N]; K],
-        derived: &mut [Series<T>],
-        k: usize,
-    ) -> ([T; N], [[T; N]; K]);
-}
-
-impl HenonHeiles {
-    #[inline(always)]
-    /// Coefficient k of ∇V(q(t)), given the coefficients 0..=k of q.
-    pub fn grad_coeff<T: Real>(&self, q: &[Series<T>; 2], k: usize) -> [T; 2] {
-        // ∇V = (q1 + 2 q1 q2, q2 + q1² − q2²) = (q1 + 2 q1 q2, q2 + (q1 − q2)(q1 + q2)). The
-        // products are summed in one pass so their chains of fused multiply-adds interleave.
-        let (a, b) = (&q[0], &q[1]);
-        let (mut s12, mut sd) = (a[0] * b[k], (a[0] - b[0]) * (a[k] + b[k]));
-        for j in 1..=k {
-            s12 = a[j].mul_add(b[k - j], s12);
-            sd = (a[j] - b[j]).mul_add(a[k - j] + b[k - j], sd);
-        }
-        [T::splat(2.0).mul_add(s12, a[k]), b[k] + sd]
-    }
-
-    #[inline(always)]
-    /// Coefficient k of D²V(q(t))·u(t), given the coefficients 0..=k of q and u.
-    pub fn hess_vec_coeff<T: Real>(
-        &self,
-        q: &[Series<T>; 2],
-        u: &[Series<T>; 2],
-        k: usize,
-    ) -> [T; 2] {
-        // D²V u = (u1 + 2 (q2 u1 + q1 u2), u2 + 2 (q1 u1 − q2 u2)), the sums in one pass.
-        let (a, b, x, y) = (&q[0], &q[1], &u[0], &u[1]);
-        let (mut s1, mut s2) = (b[0] * x[k] + a[0] * y[k], a[0] * x[k] - b[0] * y[k]);
-        for j in 1..=k {
-            s1 = b[j].mul_add(x[k - j], a[j].mul_add(y[k - j], s1));
-            s2 = a[j].mul_add(x[k - j], (-b[j]).mul_add(y[k - j], s2));
-        }
-        let two = T::splat(2.0);
-        [two.mul_add(s1, x[k]), two.mul_add(s2, y[k])]
-    }
-}
-
-impl TaylorSeries<2> for HenonHeiles {
-    fn derived_series(&self) -> usize {
-        2
-    }
-
-    #[inline(always)]
-    fn all_coeffs<T: Real, const K: usize>(
-        &self,
-        q: &[Series<T>; 2],
-        u: &[[Series<T>; 2]; K],
-        derived: &mut [Series<T>],
-        k: usize,
-    ) -> ([T; 2], [[T; 2]; K]) {
-        // The sums of grad_coeff and of every hess_vec_coeff in one pass over j, each summed
-        // in the same order as there (same bits); in double-double each sum is a long chain
-        // of dependent operations, and side by side they overlap. q1 − q2 and q1 + q2 are
-        // kept as series (`derived`): grad_coeff forms them afresh for every product, which
-        // in double-double is a visible share of the step (figures: docs/performance.md).
-        let (a, b) = (&q[0], &q[1]);
-        let [dif, sum, ..] = derived else {
-            panic!("Hénon–Heiles keeps two derived series")
-        };
-        dif[k] = a[k] - b[k];
-        sum[k] = a[k] + b[k];
-        let (dif, sum) = (&*dif, &*sum);
-        let (mut s12, mut sd) = (a[0] * b[k], dif[0] * sum[k]);
-        // Plain loops rather than `array::from_fn`: the compiler may outline an array builder,
-        // and a call in this loop costs a `vzeroupper` and stalls store forwarding, a large
-        // share of the 8-lane AVX-512 step (figures: docs/performance.md).
-        let mut s1 = [T::splat(0.0); K];
-        let mut s2 = [T::splat(0.0); K];
-        for v in 0..K {
-            s1[v] = b[0] * u[v][0][k] + a[0] * u[v][1][k];
-            s2[v] = a[0] * u[v][0][k] - b[0] * u[v][1][k];
-        }
-        for j in 1..=k {
-            s12 = a[j].mul_add(b[k - j], s12);
-            sd = dif[j].mul_add(sum[k - j], sd);
-            for v in 0..K {
-                let (x, y) = (&u[v][0], &u[v][1]);
-                s1[v] = b[j].mul_add(x[k - j], a[j].mul_add(y[k - j], s1[v]));
-                s2[v] = a[j].mul_add(x[k - j], (-b[j]).mul_add(y[k - j], s2[v]));
-            }
-        }
-        let two = T::splat(2.0);
-        let mut hv = [[T::splat(0.0); 2]; K];
-        for v in 0..K {
-            let (x, y) = (&u[v][0], &u[v][1]);
-            hv[v] = [two.mul_add(s1[v], x[k]), two.mul_add(s2[v], y[k])];
-        }
-        ([two.mul_add(s12, a[k]), b[k] + sd], hv)
-    }
-}
+use crate::adaptive::stepping::{
+    phase_lane, set_phase_lane, LaneSteps, Lanewise, Scalar, StepFailure,
+};
+use crate::arith::real::Real;
+use crate::phase::Phase;
+use crate::systems::series::{Series, TaylorSeries, P_MAX};
 
 /// The Taylor coefficients of a phase point and its deviation vectors.
 #[derive(Clone, Debug)]
@@ -709,7 +583,7 @@ pub struct TaylorLanes<'h, H, T: Lanewise, const N: usize, const K: usize, const
     /// after every step instead of `energy` (which is then computed when asked).
     energy_f64: Option<[f64; L]>,
     /// The driver's sums over each lane's state after its last step, rounded to f64.
-    sums: crate::stepping::StepEnd<crate::real::Lanes<L>, K>,
+    sums: crate::adaptive::stepping::StepEnd<crate::arith::real::Lanes<L>, K>,
     jet: Box<Jet<T, N, K>>,
 }
 
@@ -730,7 +604,7 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
             steps: [0; L],
             energy: [zero; L],
             energy_f64: None,
-            sums: crate::stepping::StepEnd::of(&Phase::<_, N, K>::zero()),
+            sums: crate::adaptive::stepping::StepEnd::of(&Phase::<_, N, K>::zero()),
             jet: Box::new(Jet::new(delta)),
         }
     }
@@ -781,11 +655,11 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
     }
 
     /// The driver's sums over lane `l`'s state after its last step.
-    pub fn step_end(&self, l: usize) -> crate::stepping::StepEnd<f64, K> {
+    pub fn step_end(&self, l: usize) -> crate::adaptive::stepping::StepEnd<f64, K> {
         self.sums.lane(l)
     }
 
-    /// The state of lane `l` rounded to f64 (as [`crate::stepping::to_f64_phase`] of
+    /// The state of lane `l` rounded to f64 (as [`crate::adaptive::stepping::to_f64_phase`] of
     /// [`Self::state`], read straight from the lanes).
     #[inline(always)]
     pub fn state_f64(&self, l: usize) -> Phase<f64, N, K> {
@@ -799,15 +673,15 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
     }
 
     /// Scales the deviation vectors of every lane of `mask` to unit length in place, all at
-    /// once, each lane by [`crate::stepping::unit_vectors`]' operations; returns what it
+    /// once, each lane by [`crate::adaptive::stepping::unit_vectors`]' operations; returns what it
     /// returns for each such lane. (Lane by lane, gathering and scattering, it is a large
     /// share of a run; figures: docs/performance.md.)
     #[inline(always)]
     pub fn unit_vectors(&mut self, mask: &[bool; L]) -> [f64; L]
     where
-        T: Real<Lead = crate::real::Lanes<L>>,
+        T: Real<Lead = crate::arith::real::Lanes<L>>,
     {
-        crate::stepping::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask)
+        crate::adaptive::stepping::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask)
     }
 
     /// [`Self::unit_vectors`] of the lanes of `renormalise`, then [`Self::step`].
@@ -818,7 +692,7 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
         t_end: &[Option<f64>; L],
     ) -> LaneSteps<L>
     where
-        T: Real<Lead = crate::real::Lanes<L>>,
+        T: Real<Lead = crate::arith::real::Lanes<L>>,
     {
         let factors = self.unit_vectors(renormalise);
         (self.step(t_end), factors)
@@ -903,9 +777,9 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
                 }
             });
         }
-        let rounded = |x: T| crate::real::Lanes::<L>::from_fn(|l| x.lane(l).to_f64());
+        let rounded = |x: T| crate::arith::real::Lanes::<L>::from_fn(|l| x.lane(l).to_f64());
         let y64 = self.y.map(rounded);
-        self.sums = crate::stepping::StepEnd::of(&y64);
+        self.sums = crate::adaptive::stepping::StepEnd::of(&y64);
         if let Some(e) = &mut self.energy_f64 {
             *e = self.ham.energy(&y64.q, &y64.p).0;
         }
@@ -934,7 +808,8 @@ impl<'h, H: TaylorSeries<N>, T: Lanewise, const N: usize, const K: usize, const 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dd::DoubleDouble;
+    use crate::arith::dd::DoubleDouble;
+    use crate::HenonHeiles;
 
     #[test]
     fn jorba_zou_orders_match_the_papers_table_1() {
@@ -942,35 +817,6 @@ mod tests {
         assert_eq!(order_for(1e-16), 20);
         assert_eq!(order_for(1e-15), 18);
         assert_eq!(order_for(1e-28), 33);
-    }
-
-    /// Hénon–Heiles' one-pass coefficients are the separate ones, bit for bit, in f64 and in
-    /// double-double.
-    #[test]
-    fn one_pass_coefficients_equal_the_separate_ones() {
-        fn check<T: Scalar + PartialEq + core::fmt::Debug>(from: impl Fn(f64) -> T) {
-            let mut x = 0.3f64;
-            let mut next = || {
-                // A fixed, irregular sequence in (−1, 1).
-                x = (x * 3.7 + 0.19).fract();
-                from(2.0 * x - 1.0)
-            };
-            let q: [Series<T>; 2] = core::array::from_fn(|_| core::array::from_fn(|_| next()));
-            let u: [[Series<T>; 2]; 3] = core::array::from_fn(|_| {
-                core::array::from_fn(|_| core::array::from_fn(|_| next()))
-            });
-            let mut derived = [[T::splat(0.0); P_MAX + 1]; 2];
-            assert_eq!(HenonHeiles.derived_series(), derived.len());
-            for k in 0..12 {
-                let (g, h) = HenonHeiles.all_coeffs(&q, &u, &mut derived, k);
-                assert_eq!(g, HenonHeiles.grad_coeff(&q, k), "k = {k}");
-                for v in 0..3 {
-                    assert_eq!(h[v], HenonHeiles.hess_vec_coeff(&q, &u[v], k), "k = {k}");
-                }
-            }
-        }
-        check(|x| x);
-        check(|x| DoubleDouble::from_f64(x) * DoubleDouble::from_f64(1.0 + x * 1e-9));
     }
 
     #[test]
@@ -1080,16 +926,5 @@ mod tests {
             }
             assert!(skipped > 5_000 && computed > 5_000, "{skipped} {computed}");
         }
-    }
-
-    #[test]
-    fn cauchy_product_multiplies_polynomials() {
-        let mut a = [0.0; P_MAX + 1];
-        let mut b = [0.0; P_MAX + 1];
-        a[..3].copy_from_slice(&[1.0, 2.0, 3.0]);
-        b[..2].copy_from_slice(&[4.0, 5.0]);
-        // (1 + 2s + 3s²)(4 + 5s) = 4 + 13s + 22s² + 15s³
-        let c: Vec<f64> = (0..5).map(|k| cauchy(&a, &b, k)).collect();
-        assert_eq!(c, vec![4.0, 13.0, 22.0, 15.0, 0.0]);
     }
 }

@@ -4,7 +4,7 @@
 //! share their monomials, so a kick forms each product of coordinates once.
 
 use super::Polynomial;
-use crate::real::Real;
+use crate::arith::real::Real;
 use std::collections::HashMap;
 
 /// Where a value comes from: the constant 1, a coordinate, or a product formed before.

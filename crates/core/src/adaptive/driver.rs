@@ -11,16 +11,19 @@
 //! by powers of two as in the tangent-map driver, because the error control weighs components
 //! by their size.
 
-use crate::dop853::{Dense, Dop853};
-use crate::hamiltonian::Hamiltonian;
+use crate::adaptive::dop853::{Dense, Dop853};
+use crate::adaptive::stepping::{
+    to_f64_phase, unit_vectors, Lanewise, Scalar, StepEnd, StepFailure,
+};
+use crate::adaptive::taylor::Taylor;
 use crate::indicators::{gali, in_band, may_be_aligned, norm2, sali, GrowthHistory};
 use crate::orbit::{
     sample_steps, steps_to, Class, OrbitConfig, OrbitResult, Requests, Sample, Status,
 };
+use crate::phase::Phase;
 use crate::section::{bracketed_root, Crossing};
-use crate::stepping::{to_f64_phase, unit_vectors, Lanewise, Scalar, StepEnd, StepFailure};
-use crate::tangent::Phase;
-use crate::taylor::{Taylor, TaylorSeries};
+use crate::systems::hamiltonian::Hamiltonian;
+use crate::systems::series::TaylorSeries;
 use core::future::Future;
 use core::pin::pin;
 use core::task::{Context, Poll, Waker};
@@ -57,7 +60,7 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     fn renormalise(&mut self) -> f64;
     /// One accepted step ending at or before `t_end` (exactly at it when within reach). A
     /// scalar integrator steps when called and its future is ready at once; a lane of a SIMD
-    /// batch ([`crate::lanes`]) waits until the batch steps.
+    /// batch ([`crate::adaptive::lanes`]) waits until the batch steps.
     fn step(&mut self, t_end: f64) -> impl Future<Output = Result<(), StepFailure>>;
     /// [`Self::renormalise`] when `renormalise` is set (its factor comes back), then
     /// [`Self::step`]: one request, so that a SIMD batch renormalises all its lanes at once
@@ -73,7 +76,7 @@ pub trait AdaptiveIntegrator<const N: usize, const K: usize> {
     }
     /// The restart protocol's next request: [`Self::renormalise_and_step`] to the multiple of
     /// τ after `pace.n`. An integrator that can take the driver's quiet steps itself (a SIMD
-    /// batch, [`crate::lanes`]) may go on through every step that [`quiet_restart_step`]
+    /// batch, [`crate::adaptive::lanes`]) may go on through every step that [`quiet_restart_step`]
     /// accepts under `rules`, advancing `pace` as it does, and come back with the first step
     /// that needs the driver: the driver's per-step work is then done for all lanes in one
     /// loop instead of in each lane's future.
@@ -185,7 +188,7 @@ impl<H: Hamiltonian<N>, const N: usize, const K: usize> AdaptiveIntegrator<N, K>
 }
 
 /// The Taylor method as an adaptive integrator; the step's polynomial is the dense output.
-pub struct TaylorOrbit<'h, H, T: crate::real::Real, const N: usize, const K: usize> {
+pub struct TaylorOrbit<'h, H, T: crate::arith::real::Real, const N: usize, const K: usize> {
     /// The underlying Taylor integrator.
     pub inner: Taylor<'h, H, T, N, K>,
     ham: &'h H,
@@ -583,12 +586,12 @@ impl<const N: usize, W: Watch<N> + ?Sized> Watch<N> for &mut W {
 }
 
 /// Steps between polls of [`Watch::cancelled`]: the tangent-map driver's
-/// [`poll_interval`](crate::batch::poll_interval), 64 steps or a time of 4 when that is more.
-/// A poll wakes the orbit's driver in lanes and reads shared claims, so polling every few
+/// [`poll_interval`](crate::tangent_map::batch::poll_interval), 64 steps or a time of 4 when that
+/// is more. A poll wakes the orbit's driver in lanes and reads shared claims, so polling every few
 /// steps costs a visible share of a run (figures: docs/performance.md), and a claim ages
 /// little in a time of 4 against orbits of 1e4.
 pub fn watch_poll(tau: f64) -> u64 {
-    crate::batch::poll_interval(tau)
+    crate::tangent_map::batch::poll_interval(tau)
 }
 
 /// Watches nothing.
@@ -655,8 +658,8 @@ fn now<F: Future>(f: F) -> F::Output {
 
 /// [`integrate_adaptive_watched`]; with `every_tau`, the free protocol computes SALI at every
 /// multiple of τ (the reference its stop window is tested against). A future, so that orbits in
-/// the lanes of a SIMD batch ([`crate::lanes`]) each run this one driver and wait at their
-/// steps for the batch; over a scalar integrator it never waits.
+/// the lanes of a SIMD batch ([`crate::adaptive::lanes`]) each run this one driver and wait at
+/// their steps for the batch; over a scalar integrator it never waits.
 pub(crate) async fn integrate<H, I, const N: usize, const K: usize>(
     ham: &H,
     integ: &mut I,
@@ -899,19 +902,19 @@ where
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dop853::Dop853Config;
-    use crate::hamiltonian::HenonHeiles;
+    use crate::adaptive::dop853::Dop853Config;
+    use crate::adaptive::stepping::{unit_deviations, unit_deviations_lanes};
+    use crate::arith::real::Lanes;
     use crate::orbit::initial_vectors;
-    use crate::real::Lanes;
     use crate::section::on_section;
-    use crate::stepping::{unit_deviations, unit_deviations_lanes};
+    use crate::systems::hamiltonian::HenonHeiles;
     use crate::Deviation;
 
     /// The lanes' renormalisation is the scalar one in every masked lane, bit for bit (f64
     /// and double-double), and leaves the other lanes alone.
     #[test]
     fn lanes_renormalise_as_the_scalar_driver_does() {
-        use crate::dd::DoubleDouble;
+        use crate::arith::dd::DoubleDouble;
         let mut seed = 0.37f64;
         let mut next = move || {
             seed = (seed * 3.7 + 0.19).fract();

@@ -1,7 +1,7 @@
 //! Adaptive orbits side by side in SIMD lanes. Every lane runs the one-orbit driver of
-//! [`crate::adaptive`] as a future that waits at each of its steps; once every busy lane waits,
-//! the batch ([`LaneBatch`]: [`TaylorLanes`] or [`Dop853Batch`]) takes one step for all of them
-//! at once, and each lane's driver goes on to its next step. The driver is the scalar one, the
+//! [`crate::adaptive::driver`] as a future that waits at each of its steps; once every busy lane
+//! waits, the batch ([`LaneBatch`]: [`TaylorLanes`] or [`Dop853Batch`]) takes one step for all of
+//! them at once, and each lane's driver goes on to its next step. The driver is the scalar one, the
 //! batch computes in each lane what the scalar integrator computes, so every orbit's result is
 //! bit-identical to its scalar run. A Taylor step is one fixed sequence of operations whatever
 //! its size; a DOP853 batch step makes passes until every asked lane has an accepted attempt.
@@ -12,19 +12,20 @@
 //! In use for `taylor-dd`, and for f64 Taylor and DOP853 at small τ; otherwise orbits run one
 //! at a time through [`integrate_feed_scalar`] (see [`crate::run::integrate_feed_adaptive`]).
 
-use crate::adaptive::Abandoned;
-use crate::adaptive::{
+use crate::adaptive::dop853::{Dense, Dop853Config, Dop853Lanes};
+use crate::adaptive::driver::Abandoned;
+use crate::adaptive::driver::{
     integrate, quiet_restart_step, relative, AdaptiveIntegrator, Pace, Protocol, QuietRules, Watch,
 };
-use crate::batch::{BatchFeed, Feed, Isa, IDLE_POLL};
-use crate::dop853::{Dense, Dop853Config, Dop853Lanes};
-use crate::hamiltonian::Hamiltonian;
+use crate::adaptive::stepping::{to_f64_phase, LaneSteps, Lanewise, Scalar, StepEnd, StepFailure};
+use crate::adaptive::taylor::TaylorLanes;
+use crate::arith::real::{Lanes, Real};
 use crate::orbit::{OrbitConfig, OrbitResult, Requests};
-use crate::real::{Lanes, Real};
+use crate::phase::Phase;
 use crate::section::Crossing;
-use crate::stepping::{to_f64_phase, LaneSteps, Lanewise, Scalar, StepEnd, StepFailure};
-use crate::tangent::Phase;
-use crate::taylor::{TaylorLanes, TaylorSeries};
+use crate::systems::hamiltonian::Hamiltonian;
+use crate::systems::series::TaylorSeries;
+use crate::tangent_map::batch::{BatchFeed, Feed, Isa, IDLE_POLL};
 use core::cell::{Cell, RefCell};
 use core::future::Future;
 use core::pin::Pin;
@@ -437,7 +438,7 @@ pub struct LaneSetup<'a, H> {
 pub const LANES: usize = 4;
 
 /// Lanes per batch of an adaptive run past [`FEWER_LANES_ABOVE_T_FINAL`] at τ of at least
-/// [`crate::run::F64_TAYLOR_LANES_BELOW_TAU`] (in practice taylor-dd at τ = 0.5): the longer
+/// [`crate::method::F64_TAYLOR_LANES_BELOW_TAU`] (in practice taylor-dd at τ = 0.5): the longer
 /// the regular orbits run, the more of the orbits in flight an earlier orbit's crossings
 /// overtake late, and where steps are not cut by τ a lane's step saves least. At small τ,
 /// where a lane's step saves most, four stay ahead even in long runs (figures:
@@ -449,9 +450,9 @@ pub const FEWER_LANES_ABOVE_T_FINAL: f64 = 3e4;
 
 /// Integrates the orbits `feed` supplies with the Taylor method in number type `S` (`f64` or
 /// `DoubleDouble`), `L` at a time in SIMD lanes, each exactly as
-/// [`integrate_adaptive_watched`](crate::adaptive::integrate_adaptive_watched) would with
-/// [`TaylorOrbit`](crate::adaptive::TaylorOrbit); `start` gives the initial state of the orbit
-/// from (q, p). Hands each result to the feed the moment its orbit ends. Its steps are
+/// [`integrate_adaptive_watched`](crate::adaptive::driver::integrate_adaptive_watched) would with
+/// [`TaylorOrbit`](crate::adaptive::driver::TaylorOrbit); `start` gives the initial state of the
+/// orbit from (q, p). Hands each result to the feed the moment its orbit ends. Its steps are
 /// compiled for `isa` (AVX-512 where the host has it: 32 vector registers hold a double-double
 /// jet's sums without spilling; the same operations, so the same bits; an `isa` the host lacks
 /// falls back to the pinned level).
@@ -472,8 +473,8 @@ pub fn integrate_feed_taylor_on<H, S, const N: usize, const K: usize, const L: u
 }
 
 /// Integrates the orbits `feed` supplies with DOP853, `L` at a time in SIMD lanes, each
-/// exactly as [`integrate_adaptive_watched`](crate::adaptive::integrate_adaptive_watched)
-/// would with [`Dop853Orbit`](crate::adaptive::Dop853Orbit), its steps compiled for `isa`.
+/// exactly as [`integrate_adaptive_watched`](crate::adaptive::driver::integrate_adaptive_watched)
+/// would with [`Dop853Orbit`](crate::adaptive::driver::Dop853Orbit), its steps compiled for `isa`.
 /// Hands each result to the feed the moment its orbit ends.
 pub fn integrate_feed_dop853_on<
     H: Hamiltonian<N>,
@@ -500,8 +501,8 @@ impl<const L: usize> SimdOf<L> for f64 {
     type Simd = Lanes<L>;
 }
 
-impl<const L: usize> SimdOf<L> for crate::dd::DoubleDouble {
-    type Simd = crate::dd::DoubleDouble<Lanes<L>>;
+impl<const L: usize> SimdOf<L> for crate::arith::dd::DoubleDouble {
+    type Simd = crate::arith::dd::DoubleDouble<Lanes<L>>;
 }
 
 type LaneFuture<'a, const N: usize> = Pin<Box<dyn Future<Output = OrbitOutcome<N>> + 'a>>;

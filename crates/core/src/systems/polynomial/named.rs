@@ -26,7 +26,7 @@ pub fn fpu_beta(n: usize, beta: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::polynomial::Polynomial;
+    use crate::systems::polynomial::Polynomial;
 
     /// Two particles: V = q1²/2 + (q2 − q1)²/2 + q2²/2 + β/4 (q1⁴ + (q2 − q1)⁴ + q2⁴).
     #[test]

@@ -3,7 +3,7 @@
 //! ([`PolynomialSystem`]) the integrators run on. Terms are kept merged and
 //! sorted by their powers, so equal polynomials compare equal however they were written.
 
-use crate::real::Real;
+use crate::arith::real::Real;
 
 mod dense;
 pub mod named;

@@ -5,7 +5,7 @@
 //! zero coefficients cost multiply-adds that a loop's overhead costs more than.
 
 use super::Polynomial;
-use crate::real::Real;
+use crate::arith::real::Real;
 
 /// The monomials of degree ≤ D in N variables, graded: monomial 0 is 1, 1…N the coordinates,
 /// and each later one is a coordinate times an earlier one. `M` is their number, C(N + D, D).

@@ -5,9 +5,9 @@
 use super::dense::VectorAndMatrix;
 use super::program::{Factor, Monomials, Program};
 use super::Polynomial;
-use crate::hamiltonian::{DerivativeBounds, Hamiltonian, KickTerms};
-use crate::real::Real;
-use crate::taylor::{Series, TaylorSeries, P_MAX};
+use crate::arith::real::Real;
+use crate::systems::hamiltonian::{DerivativeBounds, Hamiltonian, KickTerms};
+use crate::systems::series::{Series, TaylorSeries, P_MAX};
 
 /// The system of a polynomial potential in `N` degrees of freedom.
 #[derive(Clone, Debug, PartialEq)]

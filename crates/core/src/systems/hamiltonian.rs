@@ -1,6 +1,6 @@
 //! Hamiltonians of the form H = ½|p|² + V(q) with N degrees of freedom.
 
-use crate::real::{dot, Real};
+use crate::arith::real::{dot, Real};
 
 /// A separable Hamiltonian H(q, p) = ½|p|² + V(q) with `N` degrees of freedom.
 ///
@@ -118,7 +118,7 @@ pub trait Hamiltonian<const N: usize>: Send + Sync {
 
     /// Upper bounds of V's derivatives and the corrector's over the ball |q| ≤ r, or `None`
     /// where the system gives none (the batched driver then screens every step; see
-    /// [`crate::batch`]'s quiet windows, which rest on these bounds).
+    /// [`crate::tangent_map::batch`]'s quiet windows, which rest on these bounds).
     fn derivative_bounds(&self, _r: f64) -> Option<DerivativeBounds> {
         None
     }

@@ -10,7 +10,7 @@
 //! so the lanes stay full however unequal the orbits' lengths (early stops), and each result
 //! reaches the caller the moment its orbit ends.
 
-use crate::hamiltonian::Hamiltonian;
+use crate::arith::real::{dot, lane_bits, Lanes, Real};
 use crate::indicators::{
     alignment_factor, in_band, may_be_below, out_of_band_bits, sali, MINORS_RESOLVE, RESCALE_ABOVE,
     RESCALE_BELOW,
@@ -19,11 +19,12 @@ use crate::orbit::{
     escape_radius2, initial_vectors, integrate, steps_to, OrbitConfig, OrbitResult, Requests,
     Tracker, ENERGY_CHECK_EVERY,
 };
-use crate::real::{dot, lane_bits, Lanes, Real};
+use crate::phase::Phase;
 use crate::section::{
     locate_upward_lanes, locate_upward_lanes_settling, CellLattice, Crossing, CrossingStep,
 };
-use crate::tangent::{AnyShape, CorrectedDkd, EdgeIncrement, Phase, StepShape, TangentMap};
+use crate::systems::hamiltonian::Hamiltonian;
+use crate::tangent_map::map::{AnyShape, CorrectedDkd, EdgeIncrement, StepShape, TangentMap};
 
 // `LaneState::energy_phase` has a bit per phase of the energy checks.
 const _: () = assert!(ENERGY_CHECK_EVERY <= 64);

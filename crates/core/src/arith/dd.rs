@@ -5,11 +5,11 @@
 //! Popescu (ACM TOMS 2017, "Tight and rigorous error bounds for basic building blocks of
 //! double-word arithmetic", Alg. 6 for addition, Alg. 10 for multiplication).
 
-use crate::real::Real;
+use crate::arith::real::Real;
 use core::ops::{Add, AddAssign, Div, Mul, Neg, Sub, SubAssign};
 
 /// hi + lo, normalised so that hi = fl(hi + lo). `B` is `f64` for one number or
-/// [`Lanes`](crate::real::Lanes) for several side by side in SIMD lanes, each lane computing
+/// [`Lanes`](crate::arith::real::Lanes) for several side by side in SIMD lanes, each lane computing
 /// exactly what the `f64` form computes (same operations, same order).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct DoubleDouble<B = f64> {

@@ -10,38 +10,10 @@
 // Coefficients keep the digits their sources publish; f64 rounds them once.
 #![allow(clippy::excessive_precision)]
 
-use crate::hamiltonian::Hamiltonian;
-use crate::real::{Lanes, Real};
-use crate::stepping::{phase_lane, set_phase_lane, LaneSteps, StepFailure};
-use crate::tangent::Phase;
-
-// Nodes c_i. The systems here are autonomous, so only the tableau test reads them.
-#[cfg_attr(not(test), allow(dead_code))]
-const C2: f64 = 0.526_001_519_587_677_318_785_587_544_488e-1;
-#[cfg_attr(not(test), allow(dead_code))]
-const C3: f64 = 0.789_002_279_381_515_978_178_381_316_732e-1;
-#[cfg_attr(not(test), allow(dead_code))]
-const C4: f64 = 0.118_350_341_907_227_396_726_757_197_510;
-#[cfg_attr(not(test), allow(dead_code))]
-const C5: f64 = 0.281_649_658_092_772_603_273_242_802_490;
-#[cfg_attr(not(test), allow(dead_code))]
-const C6: f64 = 0.333_333_333_333_333_333_333_333_333_333;
-#[cfg_attr(not(test), allow(dead_code))]
-const C7: f64 = 0.25;
-#[cfg_attr(not(test), allow(dead_code))]
-const C8: f64 = 0.307_692_307_692_307_692_307_692_307_692;
-#[cfg_attr(not(test), allow(dead_code))]
-const C9: f64 = 0.651_282_051_282_051_282_051_282_051_282;
-#[cfg_attr(not(test), allow(dead_code))]
-const C10: f64 = 0.6;
-#[cfg_attr(not(test), allow(dead_code))]
-const C11: f64 = 0.857_142_857_142_857_142_857_142_857_142;
-#[cfg_attr(not(test), allow(dead_code))]
-const C14: f64 = 0.1;
-#[cfg_attr(not(test), allow(dead_code))]
-const C15: f64 = 0.2;
-#[cfg_attr(not(test), allow(dead_code))]
-const C16: f64 = 0.777_777_777_777_777_777_777_777_777_778;
+use crate::adaptive::stepping::{phase_lane, set_phase_lane, LaneSteps, StepFailure};
+use crate::arith::real::{Lanes, Real};
+use crate::phase::Phase;
+use crate::systems::hamiltonian::Hamiltonian;
 
 // 8th-order weights (stages 1, 6..12).
 const B: [f64; 8] = [
@@ -234,8 +206,61 @@ const D: [[f64; 12]; 4] = [
     ],
 ];
 
-/// Stages whose slopes the 8th-order solution, the error estimates and the dense output use.
-const MAIN: [usize; 8] = [0, 5, 6, 7, 8, 9, 10, 11];
+/// A Runge–Kutta pair with two embedded error estimates and dense output, as data: what
+/// [`Dop853`] and [`Dop853Lanes`] step with.
+#[derive(Clone, Copy, Debug)]
+pub struct Tableau {
+    /// Nodes c_1 … c_16 (the thirteenth stage is the next step's first, FSAL). The systems here
+    /// are autonomous, so only checks of the tableau read them.
+    pub nodes: [f64; 16],
+    /// The coupling coefficients a_ij of stages 2 … 12, each with the stage index it multiplies.
+    pub rows: [&'static [(usize, f64)]; 11],
+    /// The rows of the dense output's extra stages 14 … 16.
+    pub dense_rows: [&'static [(usize, f64)]; 3],
+    /// The stages whose slopes the solution and the 5th-order estimate weigh.
+    pub main: [usize; 8],
+    /// The 8th-order weights b_i on [`Self::main`].
+    pub weights: [f64; 8],
+    /// The 5th-order error estimate's weights on [`Self::main`].
+    pub error5: [f64; 8],
+    /// The 3rd-order estimate's weights, each with its stage index (subtracted from the 8th-order
+    /// increment).
+    pub error3: [(usize, f64); 3],
+    /// The dense output's coefficients d_ij, i = 4 … 7, on [`Self::dense_stages`].
+    pub dense: [[f64; 12]; 4],
+    /// The stages the dense output weighs: [`Self::main`], then 13 (FSAL) and 14 … 16.
+    pub dense_stages: [usize; 12],
+}
+
+/// Dormand & Prince's 8(5,3) pair with Hairer's estimates and order-7 dense output.
+pub const DOP853_TABLEAU: Tableau = Tableau {
+    nodes: [
+        0.0,
+        0.526_001_519_587_677_318_785_587_544_488e-1,
+        0.789_002_279_381_515_978_178_381_316_732e-1,
+        0.118_350_341_907_227_396_726_757_197_510,
+        0.281_649_658_092_772_603_273_242_802_490,
+        0.333_333_333_333_333_333_333_333_333_333,
+        0.25,
+        0.307_692_307_692_307_692_307_692_307_692,
+        0.651_282_051_282_051_282_051_282_051_282,
+        0.6,
+        0.857_142_857_142_857_142_857_142_857_142,
+        1.0,
+        1.0,
+        0.1,
+        0.2,
+        0.777_777_777_777_777_777_777_777_777_778,
+    ],
+    rows: [&A2, &A3, &A4, &A5, &A6, &A7, &A8, &A9, &A10, &A11, &A12],
+    dense_rows: [&A14, &A15, &A16],
+    main: [0, 5, 6, 7, 8, 9, 10, 11],
+    weights: B,
+    error5: ER,
+    error3: [(0, BHH[0]), (8, BHH[1]), (11, BHH[2])],
+    dense: D,
+    dense_stages: [0, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15],
+};
 
 /// The right-hand side of the orbit and its variational equations.
 #[inline(always)]
@@ -294,26 +319,26 @@ fn attempt<H: Hamiltonian<N>, T: Real, const N: usize, const K: usize>(
     h: T,
     k: &mut [Phase<T, N, K>; 16],
 ) -> (Phase<T, N, K>, Phase<T, N, K>, Phase<T, N, K>) {
+    let tab = &DOP853_TABLEAU;
     k[0] = *f0;
-    let rows: [&[(usize, f64)]; 11] = [&A2, &A3, &A4, &A5, &A6, &A7, &A8, &A9, &A10, &A11, &A12];
-    for (s, row) in rows.iter().enumerate() {
+    for (s, row) in tab.rows.iter().enumerate() {
         let ys = stage(y, h, row, &k[..]);
         k[s + 1] = rhs(ham, &ys);
     }
     let mut incr = Phase::zero();
-    for (w, &j) in B.iter().zip(&MAIN) {
+    for (w, &j) in tab.weights.iter().zip(&tab.main) {
         incr.axpy(T::splat(*w), &k[j]);
     }
     let mut y1 = *y;
     y1.axpy(h, &incr);
     let mut e5 = Phase::zero();
-    for (w, &j) in ER.iter().zip(&MAIN) {
+    for (w, &j) in tab.error5.iter().zip(&tab.main) {
         e5.axpy(T::splat(*w), &k[j]);
     }
     let mut e3 = incr;
-    e3.axpy(T::splat(-BHH[0]), &k[0]);
-    e3.axpy(T::splat(-BHH[1]), &k[8]);
-    e3.axpy(T::splat(-BHH[2]), &k[11]);
+    for &(j, w) in &tab.error3 {
+        e3.axpy(T::splat(-w), &k[j]);
+    }
     (y1, e5, e3)
 }
 
@@ -508,10 +533,10 @@ fn dense_from<H: Hamiltonian<N>, const N: usize, const K: usize>(
     d: &mut Dense<N, K>,
 ) {
     let LastStep { t, h, y0, y1 } = *last;
-    let extra: [(&[(usize, f64)], usize); 3] = [(&A14, 13), (&A15, 14), (&A16, 15)];
-    for (row, idx) in extra {
+    let tab = &DOP853_TABLEAU;
+    for (i, row) in tab.dense_rows.iter().enumerate() {
         let ys = stage(&y0, h, row, &k[..]);
-        k[idx] = rhs(ham, &ys);
+        k[13 + i] = rhs(ham, &ys);
     }
     let mut c1 = y1;
     c1.axpy(-1.0, &y0);
@@ -522,9 +547,8 @@ fn dense_from<H: Hamiltonian<N>, const N: usize, const K: usize>(
     c3.axpy(-h, &k[12]);
     c3.axpy(-1.0, &c2);
     let mut cs = [Phase::zero(); 4];
-    let stages: [usize; 12] = [0, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15];
-    for (row, out) in D.iter().zip(cs.iter_mut()) {
-        for (w, &j) in row.iter().zip(&stages) {
+    for (row, out) in tab.dense.iter().zip(cs.iter_mut()) {
+        for (w, &j) in row.iter().zip(&tab.dense_stages) {
             out.axpy(*w, &k[j]);
         }
         out.scale(h);
@@ -670,14 +694,13 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize> Dop853<'h, H, N, K> 
     pub fn fixed_step(&mut self, h: f64) {
         let mut k = [Phase::<f64, N, K>::zero(); 16];
         k[0] = self.f0;
-        let rows: [&[(usize, f64)]; 11] =
-            [&A2, &A3, &A4, &A5, &A6, &A7, &A8, &A9, &A10, &A11, &A12];
-        for (s, row) in rows.iter().enumerate() {
+        let tab = &DOP853_TABLEAU;
+        for (s, row) in tab.rows.iter().enumerate() {
             let ys = stage(&self.y, h, row, &k);
             k[s + 1] = rhs(self.ham, &ys);
         }
         let mut incr = Phase::zero();
-        for (w, &j) in B.iter().zip(&MAIN) {
+        for (w, &j) in tab.weights.iter().zip(&tab.main) {
             incr.axpy(*w, &k[j]);
         }
         self.y.axpy(h, &incr);
@@ -726,7 +749,7 @@ pub struct Dop853Lanes<'h, H, const N: usize, const K: usize, const L: usize> {
     /// The energy of each lane's state.
     energy: [f64; L],
     /// The driver's sums over each lane's state after its last step.
-    sums: crate::stepping::StepEnd<Lanes<L>, K>,
+    sums: crate::adaptive::stepping::StepEnd<Lanes<L>, K>,
     /// Right-hand-side evaluations of each lane so far.
     pub evaluations: [u64; L],
 }
@@ -799,7 +822,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             last_y0: Phase::zero(),
             last_y1: Phase::zero(),
             energy: [0.0; L],
-            sums: crate::stepping::StepEnd::of(&Phase::<_, N, K>::zero()),
+            sums: crate::adaptive::stepping::StepEnd::of(&Phase::<_, N, K>::zero()),
             evaluations: [0; L],
         }
     }
@@ -847,19 +870,20 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
     }
 
     /// The driver's sums over lane `l`'s state after its last step.
-    pub fn step_end(&self, l: usize) -> crate::stepping::StepEnd<f64, K> {
+    pub fn step_end(&self, l: usize) -> crate::adaptive::stepping::StepEnd<f64, K> {
         self.sums.lane(l)
     }
 
-    /// Every lane of `mask` renormalised as [`crate::stepping::unit_vectors`] would, and its
-    /// slope recomputed as [`Dop853::state_changed`] does, all lanes at once; each such lane's
+    /// Every lane of `mask` renormalised as [`crate::adaptive::stepping::unit_vectors`] would, and
+    /// its slope recomputed as [`Dop853::state_changed`] does, all lanes at once; each such lane's
     /// factor.
     #[inline(always)]
     pub fn renormalise(&mut self, mask: &[bool; L]) -> [f64; L] {
         if !mask.contains(&true) {
             return [1.0; L];
         }
-        let factors = crate::stepping::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask);
+        let factors =
+            crate::adaptive::stepping::unit_deviations_lanes(&mut self.y.dq, &mut self.y.dp, mask);
         let f = rhs(self.ham, &self.y);
         blend(&mut self.f0, &f, mask);
         for l in (0..L).filter(|&l| mask[l]) {
@@ -929,7 +953,7 @@ impl<'h, H: Hamiltonian<N>, const N: usize, const K: usize, const L: usize>
             blend(&mut self.f0, &f1, &accepted);
             // For all lanes at once: the driver reads them after every step.
             let energy = self.ham.energy(&y1.q, &y1.p);
-            self.sums = crate::stepping::StepEnd::of(&self.y);
+            self.sums = crate::adaptive::stepping::StepEnd::of(&self.y);
             for l in (0..L).filter(|&l| accepted[l]) {
                 self.energy[l] = energy.0[l];
                 let (end, (h, _, last)) = plans[l].expect("accepted lanes had a plan");
@@ -979,28 +1003,18 @@ mod tests {
 
     #[test]
     fn tableau_rows_sum_to_their_nodes_and_weights_to_one() {
-        let rows: [(&[(usize, f64)], f64); 14] = [
-            (&A2, C2),
-            (&A3, C3),
-            (&A4, C4),
-            (&A5, C5),
-            (&A6, C6),
-            (&A7, C7),
-            (&A8, C8),
-            (&A9, C9),
-            (&A10, C10),
-            (&A11, C11),
-            (&A12, 1.0),
-            (&A14, C14),
-            (&A15, C15),
-            (&A16, C16),
-        ];
-        for (i, (row, c)) in rows.iter().enumerate() {
+        let tab = &DOP853_TABLEAU;
+        let rows = tab.rows.iter().zip(&tab.nodes[1..12]);
+        let dense_rows = tab.dense_rows.iter().zip(&tab.nodes[13..]);
+        for (i, (row, c)) in rows.chain(dense_rows).enumerate() {
             let s: f64 = row.iter().map(|(_, a)| a).sum();
             assert!((s - c).abs() < 1e-13, "row {i}: Σa = {s}, c = {c}");
         }
-        assert!((B.iter().sum::<f64>() - 1.0).abs() < 1e-14);
+        assert!((tab.weights.iter().sum::<f64>() - 1.0).abs() < 1e-14);
         // The 5th-order estimate's weights sum to zero (it estimates a difference).
-        assert!(ER.iter().sum::<f64>().abs() < 1e-14);
+        assert!(tab.error5.iter().sum::<f64>().abs() < 1e-14);
+        // The 3rd-order estimate's weights sum to one, as the weights they are subtracted from.
+        assert!((tab.error3.iter().map(|(_, w)| w).sum::<f64>() - 1.0).abs() < 1e-14);
+        assert_eq!(tab.dense_stages[..8], tab.main);
     }
 }
