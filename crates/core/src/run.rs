@@ -18,7 +18,7 @@ use crate::systems::polynomial::PolynomialSystem;
 use crate::systems::series::TaylorSeries;
 use crate::tangent_map::batch::{integrate_feed_on, BatchFeed, IcsFeed, Isa};
 use crate::tangent_map::map::TangentMap;
-use crate::HenonHeiles;
+use crate::{Hamiltonian, HenonHeiles};
 
 /// A method with its settings.
 #[derive(Clone, Debug, PartialEq)]
@@ -50,14 +50,41 @@ pub fn run_orbit<H: TaylorSeries<N>, const N: usize, const K: usize>(
     config: &OrbitConfig,
     requests: &Requests,
 ) -> OrbitResult<N> {
-    if let Method::TangentMap(scheme) = &run.method {
-        let map = TangentMap::new(ham, scheme, config.tau);
-        return integrate::<H, N, K>(&map, q, p, config, requests);
+    if let Ok(result) = run_orbit_on_derivatives::<H, N, K>(ham, run, (q, p), config, requests) {
+        return result;
     }
     // Through a `dyn Watch`: the watched orbits of the grid's feeds share this copy.
     let mut unwatched: &mut dyn Watch<N> = &mut Unwatched;
     run_adaptive::<H, N, K>(ham, run, energy, q, p, config, requests, &mut unwatched)
         .expect("an unwatched orbit is never abandoned")
+}
+
+/// [`run_orbit`] on a system known only by its derivatives (a [`Hamiltonian`] without a Taylor
+/// recursion): the tangent-map methods and DOP853 need nothing more; the Taylor methods are
+/// refused with the reason.
+pub fn run_orbit_on_derivatives<H: Hamiltonian<N>, const N: usize, const K: usize>(
+    ham: &H,
+    run: &MethodRun,
+    (q, p): ([f64; N], [f64; N]),
+    config: &OrbitConfig,
+    requests: &Requests,
+) -> Result<OrbitResult<N>, String> {
+    match &run.method {
+        Method::TangentMap(scheme) => {
+            let map = TangentMap::new(ham, scheme, config.tau);
+            Ok(integrate::<H, N, K>(&map, q, p, config, requests))
+        }
+        Method::Dop853 => {
+            let mut unwatched: &mut dyn Watch<N> = &mut Unwatched;
+            let result = run_dop853::<H, N, K>(ham, run, (q, p), config, requests, &mut unwatched);
+            Ok(result.expect("an unwatched orbit is never abandoned"))
+        }
+        Method::Taylor | Method::TaylorDd => Err(format!(
+            "{} needs the system's Taylor recursion (TaylorSeries); {} has none",
+            run.method.name(),
+            ham.name()
+        )),
+    }
 }
 
 /// The deviation vectors a single orbit carries.
@@ -340,14 +367,7 @@ pub fn run_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
     let delta = || run.delta.expect("adaptive methods carry a tolerance");
     match &run.method {
         Method::TangentMap(_) => panic!("run_adaptive is for adaptive methods"),
-        Method::Dop853 => {
-            let y = Phase { q, p, dq, dp };
-            let mut integ = Dop853Orbit::new(
-                ham,
-                Dop853::new(ham, Dop853Config::with_delta(delta()), 0.0, y),
-            );
-            integrate_adaptive_watched(ham, &mut integ, run.protocol, config, requests, watch)
-        }
+        Method::Dop853 => run_dop853::<H, N, K>(ham, run, (q, p), config, requests, watch),
         Method::Taylor => {
             let y = Phase { q, p, dq, dp };
             let mut integ = TaylorOrbit::new(ham, Taylor::new(ham, delta(), 0.0, y));
@@ -359,6 +379,25 @@ pub fn run_adaptive<H: TaylorSeries<N>, const N: usize, const K: usize>(
             integrate_adaptive_watched(ham, &mut integ, run.protocol, config, requests, watch)
         }
     }
+}
+
+/// The DOP853 branch of [`run_adaptive`], which needs only the Hamiltonian's derivatives.
+fn run_dop853<H: Hamiltonian<N>, const N: usize, const K: usize>(
+    ham: &H,
+    run: &MethodRun,
+    (q, p): ([f64; N], [f64; N]),
+    config: &OrbitConfig,
+    requests: &Requests,
+    watch: &mut impl Watch<N>,
+) -> Result<OrbitResult<N>, Abandoned> {
+    let (dq, dp) = initial_vectors::<N, K>(config.deviation);
+    let delta = run.delta.expect("adaptive methods carry a tolerance");
+    let y = Phase { q, p, dq, dp };
+    let mut integ = Dop853Orbit::new(
+        ham,
+        Dop853::new(ham, Dop853Config::with_delta(delta), 0.0, y),
+    );
+    integrate_adaptive_watched(ham, &mut integ, run.protocol, config, requests, watch)
 }
 
 /// How many orbits one thread of [`integrate_feed_adaptive`] integrates at once with the

@@ -454,3 +454,87 @@ fn megno_and_fli_follow_theory_on_r1_and_c1() {
         );
     }
 }
+
+/// Hénon–Heiles known only by its derivatives: a [`Hamiltonian`] with no Taylor recursion and
+/// none of the built-in's fused forms.
+struct DerivativesOnly;
+
+impl Hamiltonian<2> for DerivativesOnly {
+    fn name(&self) -> &'static str {
+        "derivatives-only"
+    }
+    fn potential<T: salient_core::arith::real::Real>(&self, q: &[T; 2]) -> T {
+        HenonHeiles.potential(q)
+    }
+    fn grad<T: salient_core::arith::real::Real>(&self, q: &[T; 2]) -> [T; 2] {
+        HenonHeiles.grad(q)
+    }
+    fn hess_vec<T: salient_core::arith::real::Real>(&self, q: &[T; 2], u: &[T; 2]) -> [T; 2] {
+        HenonHeiles.hess_vec(q, u)
+    }
+    fn third_vec<T: salient_core::arith::real::Real>(
+        &self,
+        q: &[T; 2],
+        w: &[T; 2],
+        u: &[T; 2],
+    ) -> [T; 2] {
+        HenonHeiles.third_vec(q, w, u)
+    }
+}
+
+/// The tangent-map methods and DOP853 run on a system known only by its derivatives and
+/// agree with the built-in Hénon–Heiles; the Taylor methods are refused with the reason.
+#[test]
+fn tangent_maps_and_dop853_need_only_the_hamiltonian() {
+    use salient_core::adaptive::driver::Protocol;
+    use salient_core::run::{run_orbit, run_orbit_on_derivatives, MethodRun};
+    use salient_core::Method;
+    let config = OrbitConfig::new(0.05, 200.0);
+    let requests = Requests::default();
+    for (name, delta) in [
+        ("tm-sbab2c", None),
+        ("tm-srkn14a", None),
+        ("dop853", Some(1e-12)),
+    ] {
+        let run = MethodRun {
+            method: Method::parse(name).unwrap(),
+            delta,
+            protocol: Protocol::Restart,
+        };
+        for (q, p) in [r1(), c1()] {
+            let own = run_orbit::<_, 2, 2>(&HenonHeiles, &run, ENERGY, q, p, &config, &requests);
+            let bare = run_orbit_on_derivatives::<_, 2, 2>(
+                &DerivativesOnly,
+                &run,
+                (q, p),
+                &config,
+                &requests,
+            )
+            .unwrap();
+            assert_eq!(own.class, bare.class, "{name}");
+            assert_eq!(own.steps, bare.steps, "{name}");
+            for i in 0..2 {
+                assert!(
+                    (own.q_end[i] - bare.q_end[i]).abs() < 1e-8,
+                    "{name}: {own:?} {bare:?}"
+                );
+                assert!(
+                    (own.p_end[i] - bare.p_end[i]).abs() < 1e-8,
+                    "{name}: {own:?} {bare:?}"
+                );
+            }
+        }
+    }
+    for name in ["taylor", "taylor-dd"] {
+        let run = MethodRun {
+            method: Method::parse(name).unwrap(),
+            delta: Some(1e-10),
+            protocol: Protocol::Restart,
+        };
+        let (q, p) = r1();
+        let e =
+            run_orbit_on_derivatives::<_, 2, 2>(&DerivativesOnly, &run, (q, p), &config, &requests)
+                .unwrap_err();
+        assert!(e.contains(name) && e.contains("TaylorSeries"), "{e}");
+    }
+}
