@@ -111,38 +111,94 @@ impl<const N: usize, const M: usize, const O: usize> Dense<N, M, O> {
     }
 }
 
-/// A vector and a symmetric matrix from polynomials of degree ≤ D: the N vector rows, then
-/// the matrix's upper triangle by rows (N(N+1)/2), so `O` = N + N(N+1)/2.
+/// The kick and corrector terms of a cubic potential (degree ≤ 3), from V's derivatives alone:
+/// ∇V as dense rows over the monomials of degree ≤ 2 (`M` of them), D²V's upper triangle (`S`
+/// entries) over 1, q1…qN (`L` = N + 1), and D³V, which is constant. The corrector's potential
+/// K = |∇V|² then follows by the chain rule, ∇K = 2 D²V ∇V and D²K = 2 (D²V D²V + Σ_i ∂_iV D³V_i),
+/// instead of rows of K's own derivatives (degree 3 and 2: twice the monomials, most of their
+/// coefficients zero), about half the work of a corrected kick.
 #[derive(Clone, Debug, PartialEq)]
-pub(crate) struct VectorAndMatrix<const N: usize, const M: usize, const O: usize> {
-    dense: Dense<N, M, O>,
+pub(crate) struct CubicKick<const N: usize, const M: usize, const L: usize, const S: usize> {
+    grad: Dense<N, M, N>,
+    hessian: Dense<N, L, S>,
+    /// ∂³V/∂q_i∂q_j∂q_l at [i][j][l].
+    third: [[[f64; N]; N]; N],
 }
 
-impl<const N: usize, const M: usize, const O: usize> VectorAndMatrix<N, M, O> {
-    /// From the vector's N polynomials and the matrix's N² (by rows, symmetric).
-    pub fn new(vector: &[Polynomial], matrix: &[Polynomial]) -> Option<Self> {
-        let upper = (0..N).flat_map(|i| (i..N).map(move |j| &matrix[i * N + j]));
-        Some(VectorAndMatrix {
-            dense: Dense::new(vector.iter().chain(upper))?,
+impl<const N: usize, const M: usize, const L: usize, const S: usize> CubicKick<N, M, L, S> {
+    /// From ∇V's N polynomials, D²V's N² (by rows, symmetric) and D³V's N³ (i N² + j N + l);
+    /// `None` unless the potential is at most cubic (D³V constant).
+    pub fn new(grad: &[Polynomial], hessian: &[Polynomial], third: &[Polynomial]) -> Option<Self> {
+        let upper = (0..N).flat_map(|i| (i..N).map(move |j| &hessian[i * N + j]));
+        let mut constant = [[[0.0; N]; N]; N];
+        for (at, t) in third.iter().enumerate() {
+            if t.degree() > 0 {
+                return None;
+            }
+            constant[at / (N * N)][(at / N) % N][at % N] = t.eval(&[0.0; N]);
+        }
+        Some(CubicKick {
+            grad: Dense::new(grad)?,
+            hessian: Dense::new(upper)?,
+            third: constant,
         })
     }
 
-    /// The vector and the whole matrix at `q`.
+    /// −b∇V + c∇K and −b D²V + c D²K at `q` (`None` stands for a zero coefficient).
     #[inline(always)]
-    pub fn eval<T: Real>(&self, q: &[T; N]) -> ([T; N], [[T; N]; N]) {
-        let out = self.dense.eval(q);
-        let mut vector = [T::splat(0.0); N];
-        vector.copy_from_slice(&out[..N]);
-        let mut matrix = [[T::splat(0.0); N]; N];
-        let mut at = N;
+    pub fn kick_terms<T: Real>(
+        &self,
+        q: &[T; N],
+        b: Option<T>,
+        c: Option<T>,
+    ) -> ([T; N], [[T; N]; N]) {
+        let zero = T::splat(0.0);
+        let g = self.grad.eval(q);
+        let upper = self.hessian.eval(q);
+        let mut h = [[zero; N]; N];
+        let mut at = 0;
         for i in 0..N {
             for j in i..N {
-                matrix[i][j] = out[at];
-                matrix[j][i] = out[at];
+                h[i][j] = upper[at];
+                h[j][i] = upper[at];
                 at += 1;
             }
         }
-        (vector, matrix)
+        let mut force = [zero; N];
+        let mut matrix = [[zero; N]; N];
+        if let Some(b) = b {
+            let nb = -b;
+            for i in 0..N {
+                force[i] = nb * g[i];
+                for j in 0..N {
+                    matrix[i][j] = nb * h[i][j];
+                }
+            }
+        }
+        if let Some(c) = c {
+            let c2 = c + c;
+            for i in 0..N {
+                let mut hg = h[i][0] * g[0];
+                for j in 1..N {
+                    hg = h[i][j].mul_add(g[j], hg);
+                }
+                force[i] = c2.mul_add(hg, force[i]);
+            }
+            for j in 0..N {
+                for l in j..N {
+                    let mut s = h[j][0] * h[0][l];
+                    for i in 1..N {
+                        s = h[j][i].mul_add(h[i][l], s);
+                    }
+                    for i in 0..N {
+                        s = T::splat(self.third[i][j][l]).mul_add(g[i], s);
+                    }
+                    matrix[j][l] = c2.mul_add(s, matrix[j][l]);
+                    matrix[l][j] = matrix[j][l];
+                }
+            }
+        }
+        (force, matrix)
     }
 }
 
@@ -189,24 +245,57 @@ mod tests {
         assert!(Dense::<3, 20, 1>::new([&quartic]).is_none());
     }
 
-    /// A cubic's gradient and Hessian through dense rows: the vector, and the whole symmetric
-    /// matrix from its upper triangle.
+    /// A cubic's kick and corrector terms through the chain rule equal those of K = |∇V|²
+    /// differentiated exactly; a quartic is refused.
     #[test]
-    fn a_vector_and_a_symmetric_matrix_come_from_their_rows() {
-        let v = Polynomial::parse("(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3 + 0.3*q1*q2^2", 2).unwrap();
-        let grad: Vec<Polynomial> = (0..2).map(|i| v.derivative(i)).collect();
+    fn a_cubics_kick_terms_follow_from_its_derivatives() {
+        fn check<const N: usize, const M: usize, const L: usize, const S: usize>(text: &str) {
+            let v = Polynomial::parse(text, N).unwrap();
+            let grad: Vec<Polynomial> = (0..N).map(|i| v.derivative(i)).collect();
+            let hessian: Vec<Polynomial> = grad
+                .iter()
+                .flat_map(|g| (0..N).map(|j| g.derivative(j)))
+                .collect();
+            let third: Vec<Polynomial> = hessian
+                .iter()
+                .flat_map(|h| (0..N).map(|l| h.derivative(l)))
+                .collect();
+            let mut k = Polynomial::constant(N, 0.0);
+            for g in &grad {
+                k = k.add(&g.mul(g));
+            }
+            let kick = CubicKick::<N, M, L, S>::new(&grad, &hessian, &third).unwrap();
+            let q: [f64; N] = core::array::from_fn(|i| 0.37 - 0.29 * i as f64);
+            let (b, c) = (0.7, -0.013);
+            let (force, matrix) = kick.kick_terms(&q, Some(b), Some(c));
+            for i in 0..N {
+                let want = -b * grad[i].eval(&q) + c * k.derivative(i).eval(&q);
+                assert!(
+                    (force[i] - want).abs() < 1e-14,
+                    "{text}: {} {want}",
+                    force[i]
+                );
+                for j in 0..N {
+                    let want = -b * hessian[i * N + j].eval(&q)
+                        + c * k.derivative(i).derivative(j).eval(&q);
+                    assert!((matrix[i][j] - want).abs() < 1e-14, "{text}: {i}{j}");
+                }
+            }
+            let (plain, _) = kick.kick_terms(&q, Some(b), None);
+            assert!((plain[0] + b * grad[0].eval(&q)).abs() < 1e-15);
+        }
+        check::<2, 6, 3, 3>("(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3 + 0.3*q1*q2^2");
+        check::<3, 10, 4, 6>("(q1^2 + 2*q2^2 + 3*q3^2)/2 + q1^2*q2 + q1^2*q3 - 0.4*q1*q2*q3");
+        let quartic = Polynomial::parse("q1^4 + q2^2", 2).unwrap();
+        let grad: Vec<Polynomial> = (0..2).map(|i| quartic.derivative(i)).collect();
         let hessian: Vec<Polynomial> = grad
             .iter()
             .flat_map(|g| (0..2).map(|j| g.derivative(j)))
             .collect();
-        let dense = VectorAndMatrix::<2, 6, 5>::new(&grad, &hessian).unwrap();
-        let q = [0.37, -0.21];
-        let (g, h) = dense.eval(&q);
-        for i in 0..2 {
-            assert!((g[i] - grad[i].eval(&q)).abs() < 1e-15);
-            for j in 0..2 {
-                assert!((h[i][j] - hessian[2 * i + j].eval(&q)).abs() < 1e-15);
-            }
-        }
+        let third: Vec<Polynomial> = hessian
+            .iter()
+            .flat_map(|h| (0..2).map(|l| h.derivative(l)))
+            .collect();
+        assert!(CubicKick::<2, 6, 3, 3>::new(&grad, &hessian, &third).is_none());
     }
 }

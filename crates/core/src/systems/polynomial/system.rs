@@ -2,7 +2,7 @@
 //! for derived once, exactly, and compiled ([`Program`]); the Taylor recursion's Cauchy
 //! products planned from the same polynomials.
 
-use super::dense::VectorAndMatrix;
+use super::dense::CubicKick;
 use super::program::{Factor, Monomials, Program};
 use super::Polynomial;
 use crate::arith::real::Real;
@@ -25,12 +25,13 @@ pub struct PolynomialSystem<const N: usize> {
     corrector: Program,
     /// ∂³V/∂q_i∂q_j∂q_k at i N² + j N + k.
     third: Program,
-    /// Bounds of the same, term by term (see [`Hamiltonian::derivative_bounds`]).
-    bounds: [Vec<Polynomial>; 4],
-    /// A cubic potential's kick and corrector terms as dense rows ([`super::dense`]) in 2
-    /// degrees of freedom. In 3 the rows span 10 and 20 monomials, and a 3-dof map runs no
-    /// faster with them (dense kick and corrector, or the kick alone) than with the programs.
-    plane_cubic: Option<(VectorAndMatrix<2, 6, 5>, VectorAndMatrix<2, 10, 5>)>,
+    /// ∇V, D²V, ∇K, D²K and D³V, whose bounds term by term bound the derivatives (see
+    /// [`Hamiltonian::derivative_bounds`]).
+    bounds: [Vec<Polynomial>; 5],
+    /// A cubic potential's kick and corrector terms from dense rows of its derivatives
+    /// ([`CubicKick`]), in 2 and in 3 degrees of freedom.
+    plane_cubic: Option<CubicKick<2, 6, 3, 3>>,
+    space_cubic: Option<CubicKick<3, 10, 4, 6>>,
     taylor: TaylorPlan,
 }
 
@@ -56,15 +57,12 @@ impl<const N: usize> PolynomialSystem<N> {
             .iter()
             .flat_map(|g| (0..N).map(|j| g.derivative(j)))
             .collect();
-        let cubic = potential.degree() <= 3;
         PolynomialSystem {
-            plane_cubic: (N == 2 && cubic)
-                .then(|| {
-                    Some((
-                        VectorAndMatrix::new(&grad, &hessian)?,
-                        VectorAndMatrix::new(&k_grad, &k_hessian)?,
-                    ))
-                })
+            plane_cubic: (N == 2)
+                .then(|| CubicKick::new(&grad, &hessian, &third))
+                .flatten(),
+            space_cubic: (N == 3)
+                .then(|| CubicKick::new(&grad, &hessian, &third))
                 .flatten(),
             value: Program::new(N, [&potential]),
             grad: Program::new(N, &grad),
@@ -73,7 +71,7 @@ impl<const N: usize> PolynomialSystem<N> {
             corrector: Program::new(N, k_grad.iter().chain(&k_hessian)),
             third: Program::new(N, &third),
             taylor: TaylorPlan::new(&grad, &hessian),
-            bounds: [grad, hessian, k_grad, k_hessian],
+            bounds: [grad, hessian, k_grad, k_hessian, third],
             potential,
         }
     }
@@ -188,21 +186,18 @@ impl<const N: usize> Hamiltonian<N> for PolynomialSystem<N> {
         Self::vector_and_matrix(&self.corrector, q).1
     }
 
-    /// −b∇V + c∇K and −b D²V + c D²K, each pair from one program (dense rows for a cubic
-    /// potential in 2 dof).
+    /// −b∇V + c∇K and −b D²V + c D²K: from a cubic's derivatives by the chain rule in 2 and 3
+    /// degrees of freedom ([`CubicKick`]), else each pair from one program.
     #[inline(always)]
     fn kick_terms<T: Real>(&self, q: &[T; N], b: Option<T>, c: Option<T>) -> KickTerms<T, N> {
-        if let (2, Some((kick, corrector))) = (N, &self.plane_cubic) {
+        if let (2, Some(cubic)) = (N, &self.plane_cubic) {
             let q: &[T; 2] = q[..].try_into().expect("N = 2");
-            let t = KickTerms::compose(
-                b,
-                #[inline(always)]
-                || kick.eval(q),
-                c,
-                #[inline(always)]
-                || corrector.eval(q),
-            );
-            let (force, matrix) = widen((t.force, t.matrix));
+            let (force, matrix) = widen(cubic.kick_terms(q, b, c));
+            return KickTerms { force, matrix };
+        }
+        if let (3, Some(cubic)) = (N, &self.space_cubic) {
+            let q: &[T; 3] = q[..].try_into().expect("N = 3");
+            let (force, matrix) = widen(cubic.kick_terms(q, b, c));
             return KickTerms { force, matrix };
         }
         // The programs index their point at run time, so they read a copy: indexing the
@@ -217,14 +212,18 @@ impl<const N: usize> Hamiltonian<N> for PolynomialSystem<N> {
         )
     }
 
+    /// K's derivatives are bounded both term by term and through V's by the chain rule,
+    /// |∇K| ≤ 2‖D²V‖|∇V| and ‖D²K‖ ≤ 2(‖D²V‖² + |∇V| ‖D³V‖_F), and the smaller bound holds:
+    /// the expanded K loses the cancellations between its terms, so the chain rule is usually
+    /// far tighter, and tighter bounds open longer quiet windows in the batched driver.
     fn derivative_bounds(&self, r: f64) -> Option<DerivativeBounds> {
-        let [grad, hessian, corrector_grad, corrector_hessian] =
+        let [grad, hessian, corrector_grad, corrector_hessian, third] =
             self.bounds.each_ref().map(|polys| norm_bound(polys, r));
         Some(DerivativeBounds {
             grad,
             hessian,
-            corrector_grad,
-            corrector_hessian,
+            corrector_grad: corrector_grad.min(2.0 * hessian * grad),
+            corrector_hessian: corrector_hessian.min(2.0 * (hessian * hessian + grad * third)),
         })
     }
 }
