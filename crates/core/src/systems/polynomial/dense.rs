@@ -6,6 +6,7 @@
 
 use super::Polynomial;
 use crate::arith::real::Real;
+use crate::systems::series::Series;
 
 /// The monomials of degree ≤ D in N variables, graded: monomial 0 is 1, 1…N the coordinates,
 /// and each later one is a coordinate times an earlier one. `M` is their number, C(N + D, D).
@@ -144,6 +145,28 @@ impl<const N: usize, const M: usize, const L: usize, const S: usize> CubicKick<N
         })
     }
 
+    /// ∇V at `q`.
+    #[inline(always)]
+    pub fn grad<T: Real>(&self, q: &[T; N]) -> [T; N] {
+        self.grad.eval(q)
+    }
+
+    /// D²V at `q`, the whole symmetric matrix.
+    #[inline(always)]
+    pub fn hessian<T: Real>(&self, q: &[T; N]) -> [[T; N]; N] {
+        let upper = self.hessian.eval(q);
+        let mut h = [[T::splat(0.0); N]; N];
+        let mut at = 0;
+        for i in 0..N {
+            for j in i..N {
+                h[i][j] = upper[at];
+                h[j][i] = upper[at];
+                at += 1;
+            }
+        }
+        h
+    }
+
     /// −b∇V + c∇K and −b D²V + c D²K at `q` (`None` stands for a zero coefficient).
     #[inline(always)]
     pub fn kick_terms<T: Real>(
@@ -153,17 +176,8 @@ impl<const N: usize, const M: usize, const L: usize, const S: usize> CubicKick<N
         c: Option<T>,
     ) -> ([T; N], [[T; N]; N]) {
         let zero = T::splat(0.0);
-        let g = self.grad.eval(q);
-        let upper = self.hessian.eval(q);
-        let mut h = [[zero; N]; N];
-        let mut at = 0;
-        for i in 0..N {
-            for j in i..N {
-                h[i][j] = upper[at];
-                h[j][i] = upper[at];
-                at += 1;
-            }
-        }
+        let g = self.grad(q);
+        let h = self.hessian(q);
         let mut force = [zero; N];
         let mut matrix = [[zero; N]; N];
         if let Some(b) = b {
@@ -199,6 +213,124 @@ impl<const N: usize, const M: usize, const L: usize, const S: usize> CubicKick<N
             }
         }
         (force, matrix)
+    }
+}
+
+/// The Taylor recursion of a cubic potential in 2 degrees of freedom with every size known at
+/// compile time: ∇V is linear in the coordinates and in their three products q_a q_b, and D²V
+/// is linear in the coordinates (D³V constant), so order k of ∇V and of D²V·u needs only the
+/// Cauchy products q_a ⋆ q_b and q_a ⋆ u_j, all summed side by side in one pass (as the
+/// hand-written Hénon–Heiles recursion sums its own), where the general plan walks its terms.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct PlaneCubicSeries {
+    /// ∇V_i's constant term.
+    grad_const: [f64; 2],
+    /// ∇V_i's coefficient of q_a, at [i][a].
+    grad_linear: [[f64; 2]; 2],
+    /// ∇V_i's coefficients of q1², q1 q2, q2², at [i][p].
+    grad_quadratic: [[f64; 3]; 2],
+    /// D²V at q = 0, at [i][j].
+    hessian_const: [[f64; 2]; 2],
+    /// ∂³V/∂q_a∂q_i∂q_j at [a][i][j].
+    third: [[[f64; 2]; 2]; 2],
+}
+
+impl PlaneCubicSeries {
+    /// From ∇V's two polynomials; `None` unless V is at most cubic.
+    pub fn new(grad: &[Polynomial]) -> Option<Self> {
+        let mut series = PlaneCubicSeries {
+            grad_const: [0.0; 2],
+            grad_linear: [[0.0; 2]; 2],
+            grad_quadratic: [[0.0; 3]; 2],
+            hessian_const: [[0.0; 2]; 2],
+            third: [[[0.0; 2]; 2]; 2],
+        };
+        for (i, g) in grad.iter().enumerate() {
+            for (c, powers) in g.terms() {
+                match powers {
+                    [0, 0] => series.grad_const[i] = c,
+                    [1, 0] => series.grad_linear[i][0] = c,
+                    [0, 1] => series.grad_linear[i][1] = c,
+                    [2, 0] => series.grad_quadratic[i][0] = c,
+                    [1, 1] => series.grad_quadratic[i][1] = c,
+                    [0, 2] => series.grad_quadratic[i][2] = c,
+                    _ => return None,
+                }
+            }
+        }
+        for i in 0..2 {
+            for j in 0..2 {
+                series.hessian_const[i][j] = series.grad_linear[i][j];
+            }
+            // ∂_j of q1², q1 q2, q2² is (2 q1, q2, 0) for j = 1 and (0, q1, 2 q2) for j = 2;
+            // ∂_a of that is constant.
+            let [c11, c12, c22] = series.grad_quadratic[i];
+            series.third[0][i][0] = 2.0 * c11;
+            series.third[1][i][0] = c12;
+            series.third[0][i][1] = c12;
+            series.third[1][i][1] = 2.0 * c22;
+        }
+        Some(series)
+    }
+
+    /// Coefficient k of ∇V(q(t)) and of D²V(q(t))·u_v(t) for every deviation vector, from the
+    /// coefficients 0..=k of q and u.
+    #[inline(always)]
+    pub fn all_coeffs<T: Real, const K: usize>(
+        &self,
+        q: &[Series<T>; 2],
+        u: [&[Series<T>; 2]; K],
+        k: usize,
+    ) -> ([T; 2], [[T; 2]; K]) {
+        let (a, b) = (&q[0], &q[1]);
+        let mut products = [a[0] * a[k], a[0] * b[k], b[0] * b[k]];
+        // mixed[v][c][j] = (q_c ⋆ u_vj)[k]; plain loops, not `array::from_fn` (an outlined
+        // call in the recursion stalls store forwarding).
+        let mut mixed = [[[T::splat(0.0); 2]; 2]; K];
+        for v in 0..K {
+            for c in 0..2 {
+                for j in 0..2 {
+                    mixed[v][c][j] = q[c][0] * u[v][j][k];
+                }
+            }
+        }
+        for m in 1..=k {
+            products[0] = a[m].mul_add(a[k - m], products[0]);
+            products[1] = a[m].mul_add(b[k - m], products[1]);
+            products[2] = b[m].mul_add(b[k - m], products[2]);
+            for v in 0..K {
+                for c in 0..2 {
+                    for j in 0..2 {
+                        mixed[v][c][j] = q[c][m].mul_add(u[v][j][k - m], mixed[v][c][j]);
+                    }
+                }
+            }
+        }
+        let mut grad = [T::splat(0.0); 2];
+        for i in 0..2 {
+            let mut g = T::splat(if k == 0 { self.grad_const[i] } else { 0.0 });
+            for c in 0..2 {
+                g = T::splat(self.grad_linear[i][c]).mul_add(q[c][k], g);
+            }
+            for p in 0..3 {
+                g = T::splat(self.grad_quadratic[i][p]).mul_add(products[p], g);
+            }
+            grad[i] = g;
+        }
+        let mut hv = [[T::splat(0.0); 2]; K];
+        for v in 0..K {
+            for i in 0..2 {
+                let mut h = T::splat(self.hessian_const[i][0]) * u[v][0][k];
+                h = T::splat(self.hessian_const[i][1]).mul_add(u[v][1][k], h);
+                for c in 0..2 {
+                    for j in 0..2 {
+                        h = T::splat(self.third[c][i][j]).mul_add(mixed[v][c][j], h);
+                    }
+                }
+                hv[v][i] = h;
+            }
+        }
+        (grad, hv)
     }
 }
 

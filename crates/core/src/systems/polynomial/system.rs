@@ -2,7 +2,7 @@
 //! for derived once, exactly, and compiled ([`Program`]); the Taylor recursion's Cauchy
 //! products planned from the same polynomials.
 
-use super::dense::CubicKick;
+use super::dense::{CubicKick, PlaneCubicSeries};
 use super::program::{Factor, Monomials, Program};
 use super::Polynomial;
 use crate::arith::real::Real;
@@ -33,6 +33,9 @@ pub struct PolynomialSystem<const N: usize> {
     plane_cubic: Option<CubicKick<2, 6, 3, 3>>,
     space_cubic: Option<CubicKick<3, 10, 4, 6>>,
     taylor: TaylorPlan,
+    /// A cubic potential's Taylor recursion in 2 degrees of freedom, sizes fixed at compile
+    /// time ([`PlaneCubicSeries`]).
+    plane_series: Option<PlaneCubicSeries>,
 }
 
 impl<const N: usize> PolynomialSystem<N> {
@@ -71,6 +74,7 @@ impl<const N: usize> PolynomialSystem<N> {
             corrector: Program::new(N, k_grad.iter().chain(&k_hessian)),
             third: Program::new(N, &third),
             taylor: TaylorPlan::new(&grad, &hessian),
+            plane_series: (N == 2).then(|| PlaneCubicSeries::new(&grad)).flatten(),
             bounds: [grad, hessian, k_grad, k_hessian, third],
             potential,
         }
@@ -141,8 +145,17 @@ impl<const N: usize> Hamiltonian<N> for PolynomialSystem<N> {
         v
     }
 
+    /// From a cubic's dense rows in 2 and 3 dof ([`CubicKick`]), else from the program.
     #[inline(always)]
     fn grad<T: Real>(&self, q: &[T; N]) -> [T; N] {
+        if let (2, Some(cubic)) = (N, &self.plane_cubic) {
+            let q: &[T; 2] = q[..].try_into().expect("N = 2");
+            return widen((cubic.grad(q), [[T::splat(0.0); 2]; 2])).0;
+        }
+        if let (3, Some(cubic)) = (N, &self.space_cubic) {
+            let q: &[T; 3] = q[..].try_into().expect("N = 3");
+            return widen((cubic.grad(q), [[T::splat(0.0); 3]; 3])).0;
+        }
         let mut g = [T::splat(0.0); N];
         self.grad.eval(q, |i, x| g[i] = x);
         g
@@ -160,8 +173,17 @@ impl<const N: usize> Hamiltonian<N> for PolynomialSystem<N> {
         })
     }
 
+    /// As [`Self::grad`].
     #[inline(always)]
     fn hessian<T: Real>(&self, q: &[T; N]) -> [[T; N]; N] {
+        if let (2, Some(cubic)) = (N, &self.plane_cubic) {
+            let q: &[T; 2] = q[..].try_into().expect("N = 2");
+            return widen(([T::splat(0.0); 2], cubic.hessian(q))).1;
+        }
+        if let (3, Some(cubic)) = (N, &self.space_cubic) {
+            let q: &[T; 3] = q[..].try_into().expect("N = 3");
+            return widen(([T::splat(0.0); 3], cubic.hessian(q))).1;
+        }
         let mut h = [[T::splat(0.0); N]; N];
         self.hessian.eval(q, |o, x| h[o / N][o % N] = x);
         h
@@ -359,6 +381,9 @@ fn cauchy_sums<'a, T: Real + 'a>(
 
 impl<const N: usize> TaylorSeries<N> for PolynomialSystem<N> {
     fn derived_series(&self) -> usize {
+        if N == 2 && self.plane_series.is_some() {
+            return 0;
+        }
         N + self.taylor.products.len()
     }
 
@@ -370,6 +395,21 @@ impl<const N: usize> TaylorSeries<N> for PolynomialSystem<N> {
         derived: &mut [Series<T>],
         k: usize,
     ) -> ([T; N], [[T; N]; K]) {
+        if let (2, Some(series)) = (N, &self.plane_series) {
+            let q2: &[Series<T>; 2] = q[..].try_into().expect("N = 2");
+            let mut u2 = [q2; K];
+            for (to, from) in u2.iter_mut().zip(u) {
+                *to = from[..].try_into().expect("N = 2");
+            }
+            let (g, hv) = series.all_coeffs(q2, u2, k);
+            let mut grad = [T::splat(0.0); N];
+            let mut hess = [[T::splat(0.0); N]; K];
+            grad[..2].copy_from_slice(&g);
+            for v in 0..K {
+                hess[v][..2].copy_from_slice(&hv[v]);
+            }
+            return (grad, hess);
+        }
         let plan = &self.taylor;
         debug_assert_eq!(plan.dof, N);
         for i in 0..N {
