@@ -2,7 +2,7 @@
 
 use crate::human::{csv_number, human};
 use crate::output::Staged;
-use crate::system::{OrbitReport, System, SystemArgs};
+use crate::system::{OrbitReport, PointArgs, System, SystemArgs};
 use crate::usage::{finite, positive, runtime, CliError, CliResult};
 use clap::{Args, ValueEnum};
 use salient_core::adaptive::driver::Protocol as AdaptiveProtocol;
@@ -49,23 +49,8 @@ pub struct OrbitArgs {
     /// p2 of the initial condition on the section.
     #[arg(long, requires = "q2")]
     p2: Option<f64>,
-    /// The whole initial condition instead of --q2/--p2: q1,…,qN (with --p; the energy
-    /// follows from them).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        allow_hyphen_values = true,
-        requires = "p"
-    )]
-    q: Option<Vec<f64>>,
-    /// p1,…,pN of the initial condition given by --q.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        allow_hyphen_values = true,
-        requires = "q"
-    )]
-    p: Option<Vec<f64>>,
+    #[command(flatten)]
+    point: PointArgs,
     /// Energy H of the orbit started on the section [default: 0.125].
     #[arg(long, conflicts_with = "q")]
     energy: Option<f64>,
@@ -248,9 +233,8 @@ fn validate(a: &OrbitArgs) -> CliResult<OrbitJob> {
 /// The initial point (q, p) and its energy: from --q and --p, or on the section q1 = 0 from
 /// --q2, --p2 and --energy.
 fn start_of(a: &OrbitArgs, system: &System) -> CliResult<(Vec<f64>, Vec<f64>, f64)> {
-    if let (Some(q), Some(p)) = (&a.q, &a.p) {
-        let energy = system.whole_point(("--q", q), ("--p", p))?;
-        return Ok((q.clone(), p.clone(), energy));
+    if let Some(point) = a.point.of(system)? {
+        return Ok(point);
     }
     let dof = system.dof();
     if dof != 2 {

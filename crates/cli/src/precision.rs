@@ -3,7 +3,7 @@
 
 use crate::ladder::{default_ladder, reference, run_ladder, Row, ADAPTIVE_TAU, REFERENCE_DELTA};
 use crate::output::{print_result, write_tables, Staged};
-use crate::system::{System, SystemArgs};
+use crate::system::{PointArgs, System, SystemArgs};
 use crate::usage::{finite, runtime, CliError, CliResult};
 use clap::Args;
 use salient_report::{render_loglog, HLine, Line, LogLogPlot, Table};
@@ -21,22 +21,8 @@ pub struct PrecisionArgs {
     /// system of 2 degrees of freedom [default: R1 for Hénon–Heiles].
     #[arg(long, conflicts_with = "q")]
     orbit: Option<String>,
-    /// The whole initial point instead of --orbit: q1,…,qN (with --p; the energy follows).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        allow_hyphen_values = true,
-        requires = "p"
-    )]
-    q: Option<Vec<f64>>,
-    /// p1,…,pN of the initial point given by --q.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        allow_hyphen_values = true,
-        requires = "q"
-    )]
-    p: Option<Vec<f64>>,
+    #[command(flatten)]
+    point: PointArgs,
     /// Final time of every run.
     #[arg(long = "t-final", default_value_t = 1e3)]
     t_final: f64,
@@ -112,9 +98,8 @@ fn parse_orbit(s: &str, system: &System) -> CliResult<(String, f64, f64)> {
 /// The initial point of the ladder: its name, (q, p) and energy, from --q/--p or from --orbit
 /// and --energy on the section q1 = 0.
 fn start_of(args: &PrecisionArgs, system: &System) -> CliResult<(String, Vec<f64>, Vec<f64>, f64)> {
-    if let (Some(q), Some(p)) = (&args.q, &args.p) {
-        let energy = system.whole_point(("--q", q), ("--p", p))?;
-        return Ok(("point".into(), q.clone(), p.clone(), energy));
+    if let Some((q, p, energy)) = args.point.of(system)? {
+        return Ok(("point".into(), q, p, energy));
     }
     let orbit = match (&args.orbit, system) {
         (Some(o), _) => o.clone(),

@@ -37,6 +37,41 @@ pub struct SystemArgs {
     pub dof: usize,
 }
 
+/// The whole initial point, for any number of degrees of freedom.
+#[derive(Args, Debug)]
+pub struct PointArgs {
+    /// The whole initial point: q1,…,qN (with --p; the energy follows from them).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "p"
+    )]
+    pub q: Option<Vec<f64>>,
+    /// p1,…,pN of the initial point given by --q.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "q"
+    )]
+    pub p: Option<Vec<f64>>,
+}
+
+/// A phase-space point (q, p) and its energy.
+pub type Point = (Vec<f64>, Vec<f64>, f64);
+
+impl PointArgs {
+    /// (q, p) and its energy in `system`, checked, when --q and --p are given.
+    pub fn of(&self, system: &System) -> CliResult<Option<Point>> {
+        let (Some(q), Some(p)) = (&self.q, &self.p) else {
+            return Ok(None);
+        };
+        let energy = system.whole_point(q, p)?;
+        Ok(Some((q.clone(), p.clone(), energy)))
+    }
+}
+
 /// A validated system: the built-in Hénon–Heiles, or a polynomial potential with its text.
 #[derive(Clone, Debug)]
 pub enum System {
@@ -145,15 +180,11 @@ impl System {
         (radicand > 0.0).then(|| (vec![0.0, q2], vec![radicand.sqrt(), p2]))
     }
 
-    /// The whole point (q, p) given by two flags, checked: one finite number per degree of
-    /// freedom each, and a finite energy (returned).
-    pub fn whole_point(
-        &self,
-        (q_flag, q): (&str, &[f64]),
-        (p_flag, p): (&str, &[f64]),
-    ) -> CliResult<f64> {
+    /// The energy of the point (q, p) of --q and --p, checked: one finite number per degree of
+    /// freedom each, and a finite energy.
+    fn whole_point(&self, q: &[f64], p: &[f64]) -> CliResult<f64> {
         let dof = self.dof();
-        for (flag, x) in [(q_flag, q), (p_flag, p)] {
+        for (flag, x) in [("--q", q), ("--p", p)] {
             if x.len() != dof {
                 return Err(CliError::Usage(format!(
                     "{flag} needs {dof} comma-separated numbers, one per degree of freedom (got {})",
@@ -167,7 +198,7 @@ impl System {
         let energy = 0.5 * p.iter().map(|x| x * x).sum::<f64>() + self.potential_at(q);
         if !energy.is_finite() {
             return Err(CliError::Usage(format!(
-                "{q_flag}, {p_flag}: the energy at this point is not finite ({energy})"
+                "--q, --p: the energy at this point is not finite ({energy})"
             )));
         }
         Ok(energy)

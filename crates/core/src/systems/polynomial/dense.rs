@@ -383,15 +383,9 @@ mod tests {
     fn a_cubics_kick_terms_follow_from_its_derivatives() {
         fn check<const N: usize, const M: usize, const L: usize, const S: usize>(text: &str) {
             let v = Polynomial::parse(text, N).unwrap();
-            let grad: Vec<Polynomial> = (0..N).map(|i| v.derivative(i)).collect();
-            let hessian: Vec<Polynomial> = grad
-                .iter()
-                .flat_map(|g| (0..N).map(|j| g.derivative(j)))
-                .collect();
-            let third: Vec<Polynomial> = hessian
-                .iter()
-                .flat_map(|h| (0..N).map(|l| h.derivative(l)))
-                .collect();
+            let grad = Polynomial::derivatives(&[v]);
+            let hessian = Polynomial::derivatives(&grad);
+            let third = Polynomial::derivatives(&hessian);
             let mut k = Polynomial::constant(N, 0.0);
             for g in &grad {
                 k = k.add(&g.mul(g));
@@ -419,15 +413,9 @@ mod tests {
         check::<2, 6, 3, 3>("(q1^2 + q2^2)/2 + q1^2*q2 - q2^3/3 + 0.3*q1*q2^2");
         check::<3, 10, 4, 6>("(q1^2 + 2*q2^2 + 3*q3^2)/2 + q1^2*q2 + q1^2*q3 - 0.4*q1*q2*q3");
         let quartic = Polynomial::parse("q1^4 + q2^2", 2).unwrap();
-        let grad: Vec<Polynomial> = (0..2).map(|i| quartic.derivative(i)).collect();
-        let hessian: Vec<Polynomial> = grad
-            .iter()
-            .flat_map(|g| (0..2).map(|j| g.derivative(j)))
-            .collect();
-        let third: Vec<Polynomial> = hessian
-            .iter()
-            .flat_map(|h| (0..2).map(|l| h.derivative(l)))
-            .collect();
+        let grad = Polynomial::derivatives(&[quartic]);
+        let hessian = Polynomial::derivatives(&grad);
+        let third = Polynomial::derivatives(&hessian);
         assert!(CubicKick::<2, 6, 3, 3>::new(&grad, &hessian, &third).is_none());
     }
 }

@@ -141,6 +141,15 @@ impl Polynomial {
         result
     }
 
+    /// Every first derivative of every polynomial of `polys`, polynomial by polynomial: ∇V
+    /// from [V], D²V by rows from ∇V, D³V (i N² + j N + k) from D²V.
+    pub fn derivatives(polys: &[Polynomial]) -> Vec<Polynomial> {
+        polys
+            .iter()
+            .flat_map(|p| (0..p.dof()).map(|k| p.derivative(k)))
+            .collect()
+    }
+
     /// ∂/∂q_{k+1} (`k` counts from 0), exactly.
     pub fn derivative(&self, k: usize) -> Polynomial {
         let terms = self

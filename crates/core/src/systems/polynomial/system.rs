@@ -42,24 +42,15 @@ impl<const N: usize> PolynomialSystem<N> {
     /// The system of `potential`, a polynomial in q1…qN.
     pub fn new(potential: Polynomial) -> Self {
         assert_eq!(potential.dof(), N, "a potential in {N} coordinates");
-        let grad: Vec<Polynomial> = (0..N).map(|i| potential.derivative(i)).collect();
-        let hessian: Vec<Polynomial> = grad
-            .iter()
-            .flat_map(|g| (0..N).map(|j| g.derivative(j)))
-            .collect();
-        let third: Vec<Polynomial> = hessian
-            .iter()
-            .flat_map(|h| (0..N).map(|k| h.derivative(k)))
-            .collect();
+        let grad = Polynomial::derivatives(core::slice::from_ref(&potential));
+        let hessian = Polynomial::derivatives(&grad);
+        let third = Polynomial::derivatives(&hessian);
         let mut k = Polynomial::constant(N, 0.0);
         for g in &grad {
             k = k.add(&g.mul(g));
         }
-        let k_grad: Vec<Polynomial> = (0..N).map(|i| k.derivative(i)).collect();
-        let k_hessian: Vec<Polynomial> = k_grad
-            .iter()
-            .flat_map(|g| (0..N).map(|j| g.derivative(j)))
-            .collect();
+        let k_grad = Polynomial::derivatives(core::slice::from_ref(&k));
+        let k_hessian = Polynomial::derivatives(&k_grad);
         PolynomialSystem {
             plane_cubic: (N == 2)
                 .then(|| CubicKick::new(&grad, &hessian, &third))
