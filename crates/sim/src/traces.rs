@@ -60,9 +60,14 @@ impl Traces {
     }
 }
 
-/// Orbit-steps integrated to calibrate the cost of a step: enough for a stable figure, a few
-/// tenths of a second.
+/// Orbit-steps integrated to calibrate the cost of a step, over all passes: enough for a
+/// stable figure, a few tenths of a second.
 const CALIBRATION_STEPS: u64 = 20_000_000;
+
+/// Passes over the calibration's orbits, each timed alone: the figure is their median, so that
+/// a pass slowed by something else on the host (another process, a frequency change) does not
+/// set it.
+const CALIBRATION_PASSES: u64 = 5;
 
 /// Orbits of the calibration, spread evenly over the grid's compatible cells (regular and
 /// chaotic ones cost differently per step: crossings, early stops).
@@ -96,21 +101,27 @@ pub fn calibrate_step_ns(grid: &Grid, cell_run: &CellRun, mode: Mode) -> f64 {
     let stride = (canonical.len() / CALIBRATION_ORBITS).max(1);
     let cells: VecDeque<u32> = canonical.iter().copied().step_by(stride).collect();
     let mut run = cell_run.clone();
-    let per_orbit = (CALIBRATION_STEPS / cells.len().max(1) as u64).max(1000);
+    let per_orbit = (CALIBRATION_STEPS / CALIBRATION_PASSES / cells.len().max(1) as u64).max(1000);
     run.config.t_final = run.config.t_final.min(per_orbit as f64 * run.config.tau);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
         .expect("a one-thread pool");
-    let source = ListSource {
-        cells: Mutex::new(cells),
-        steps: AtomicU64::new(0),
-    };
-    let local = LocalLedger::new(grid, mode);
-    let cpu_ns = pool.install(|| {
-        let start = thread_cpu_ns();
-        integrate_stream(grid, &run, mode, &local, &source);
-        thread_cpu_ns() - start
-    });
-    cpu_ns as f64 / source.steps.load(Ordering::Relaxed).max(1) as f64
+    let mut passes: Vec<f64> = (0..CALIBRATION_PASSES)
+        .map(|_| {
+            let source = ListSource {
+                cells: Mutex::new(cells.clone()),
+                steps: AtomicU64::new(0),
+            };
+            let local = LocalLedger::new(grid, mode);
+            let cpu_ns = pool.install(|| {
+                let start = thread_cpu_ns();
+                integrate_stream(grid, &run, mode, &local, &source);
+                thread_cpu_ns() - start
+            });
+            cpu_ns as f64 / source.steps.load(Ordering::Relaxed).max(1) as f64
+        })
+        .collect();
+    passes.sort_by(f64::total_cmp);
+    passes[passes.len() / 2]
 }
