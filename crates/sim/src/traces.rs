@@ -65,8 +65,8 @@ impl Traces {
 const CALIBRATION_STEPS: u64 = 20_000_000;
 
 /// Passes over the calibration's orbits, each timed alone: the figure is their median, so that
-/// a pass slowed by something else on the host (another process, a frequency change) does not
-/// set it.
+/// a pass slowed by something else on the host (a neighbour on the core's caches, a frequency
+/// change, time stolen from a virtual machine) does not set it.
 const CALIBRATION_PASSES: u64 = 5;
 
 /// Orbits of the calibration, spread evenly over the grid's compatible cells (regular and
