@@ -64,6 +64,17 @@ fn precision_runs_every_setting_against_the_reference() {
     assert_eq!(csv.lines().count(), 63);
 }
 
+/// `args` exit with status 2 and one line on stderr that names `needle`.
+fn assert_refused_in_one_line(args: &[&str], needle: &str) {
+    let out = salient(args);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
+    assert!(
+        stderr.contains(needle) && stderr.trim().lines().count() == 1,
+        "{args:?}: {stderr}"
+    );
+}
+
 #[test]
 fn precision_refuses_bad_orbits_and_times() {
     for (args, flag) in [
@@ -72,13 +83,7 @@ fn precision_refuses_bad_orbits_and_times() {
         (vec!["precision", "--orbit", "0.6,0.45"], "--energy"),
         (vec!["precision", "--t-final", "0.1"], "--t-final"),
     ] {
-        let out = salient(&args);
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
-        assert!(
-            stderr.contains(flag) && stderr.trim().lines().count() == 1,
-            "{args:?}: {stderr}"
-        );
+        assert_refused_in_one_line(&args, flag);
     }
 }
 
@@ -187,13 +192,7 @@ fn precision_refuses_orbits_its_system_does_not_have() {
             "--potential",
         ),
     ] {
-        let out = salient(&args);
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
-        assert!(
-            stderr.contains(needle) && stderr.trim().lines().count() == 1,
-            "{args:?}: {stderr}"
-        );
+        assert_refused_in_one_line(&args, needle);
     }
 }
 

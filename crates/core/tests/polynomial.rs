@@ -62,16 +62,22 @@ fn the_tangent_map_of_another_potential_is_the_jacobian_and_symplectic() {
     }
 }
 
-/// A bounded random potential in `N` coordinates: ½ Σ ω_i q_i² + ¼ Σ q_i⁴ plus random cubic
-/// and quartic couplings with coefficients in [−0.2, 0.2].
-fn random_system<const N: usize>(seed: u64) -> PolynomialSystem<N> {
+/// Draws uniform in [0, 1) from a xorshift generator seeded with `seed` (reproducible cases
+/// without a dependency).
+fn uniform_draws(seed: u64) -> impl FnMut() -> f64 {
     let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    let mut next = move || {
+    move || {
         state ^= state << 13;
         state ^= state >> 7;
         state ^= state << 17;
         (state >> 11) as f64 / (1u64 << 53) as f64
-    };
+    }
+}
+
+/// A bounded random potential in `N` coordinates: ½ Σ ω_i q_i² + ¼ Σ q_i⁴ plus random cubic
+/// and quartic couplings with coefficients in [−0.2, 0.2].
+fn random_system<const N: usize>(seed: u64) -> PolynomialSystem<N> {
+    let mut next = uniform_draws(seed);
     let mut text = String::new();
     for i in 1..=N {
         text += &format!("+ {}*q{i}^2/2 + q{i}^4/4 ", 0.6 + next());
@@ -105,13 +111,7 @@ fn phase_distance<const N: usize, const K: usize>(
 /// A random cubic potential in 2 dof: a well with small cubic terms (the Taylor recursion's
 /// fixed-size path).
 fn random_cubic(seed: u64) -> PolynomialSystem<2> {
-    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    let mut next = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        (state >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut next = uniform_draws(seed);
     let mut text = format!(
         "{}*q1^2/2 + {}*q2^2/2 + {}*q1*q2",
         0.6 + next(),
